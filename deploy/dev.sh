@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# One entry point for a developer or CI on a fresh Debian bookworm machine:
+#   deploy/dev.sh setup   - apt packages, .venv, the project (editable) with its test extras
+#   deploy/dev.sh serve   - setup, then run the service (simulated cell, API on 127.0.0.1)
+#   deploy/dev.sh test    - setup, then run the whole test suite
+# Re-running is cheap: apt and pip are skipped when nothing they own has changed.
+set -euo pipefail
+
+repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+cd "$repo"
+venv="$repo/.venv"
+
+# Debian packages the project needs at run or test time (kept in one place).
+apt_packages=(python3 python3-venv python3-dev gcc)
+
+as_root() {
+    if [ "$(id -u)" -eq 0 ]; then "$@"; else sudo "$@"; fi
+}
+
+install_apt() {
+    local missing=()
+    for p in "${apt_packages[@]}"; do
+        dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+    done
+    if [ ${#missing[@]} -gt 0 ]; then
+        echo "posecell setup: installing Debian packages: ${missing[*]}" >&2
+        as_root env DEBIAN_FRONTEND=noninteractive apt-get update -q
+        as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends "${missing[@]}"
+    fi
+}
+
+install_venv() {
+    local stamp="$venv/.posecell-installed"
+    local want
+    want=$(sha256sum pyproject.toml | cut -d' ' -f1)
+    if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && [ -x "$venv/bin/posecell" ]; then
+        return
+    fi
+    [ -x "$venv/bin/python" ] || python3 -m venv "$venv"
+    "$venv/bin/python" -m pip install -q --upgrade pip
+    "$venv/bin/python" -m pip install -q -e ".[test]"
+    echo "$want" > "$stamp"
+}
+
+setup() {
+    install_apt
+    install_venv
+}
+
+cmd=${1:-help}
+shift || true
+case "$cmd" in
+    setup) setup ;;
+    serve) setup; exec "$venv/bin/posecell" serve "$@" ;;
+    test)
+        setup
+        exec "$venv/bin/python" -m pytest "$@"
+        ;;
+    *) echo "usage: deploy/dev.sh setup|serve|test [args...]" >&2; exit 2 ;;
+esac

@@ -1,0 +1,45 @@
+"""Shared fixtures: the reference camera of DESIGN section 7 and the path to the real data sets."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.core.camera_model import BrownFraser
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def shared_data(name: str) -> Path:
+    """Path of a real data set in ../shared/data, or skip the test saying why."""
+    p = SHARED_DATA / name
+    if not p.exists():
+        pytest.skip(f"real data set {name!r} not found at {p} (see ../shared/data/README.md)")
+    return p
+
+
+@pytest.fixture
+def reference_camera() -> BrownFraser:
+    """1300x1030 px, 6.7 um pixels, c = 12 mm, with distortion of a real 12 mm lens."""
+    return BrownFraser(
+        width=1300,
+        height=1030,
+        pixel_size_mm=(0.0067, 0.0067),
+        c_mm=12.0,
+        x0_mm=0.031,
+        y0_mm=-0.024,
+        K1=-1.1e-3,
+        K2=3.0e-6,
+        K3=-1.0e-8,
+        P1=2.0e-5,
+        P2=-1.5e-5,
+        B1=1.0e-4,
+        B2=-5.0e-5,
+    )
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(20261125)

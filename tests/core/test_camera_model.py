@@ -1,0 +1,91 @@
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from service.core.camera_model import BrownFraser
+from service.core.opencv_compat import brown_from_opencv, opencv_from_brown
+
+
+def test_inverse_correction_agrees_with_forward_over_whole_sensor(reference_camera):
+    cam = reference_camera
+    uv = cam.pixel_grid(131, 104)
+    back = cam.pixel_from_ideal(cam.ideal_from_pixel(uv))
+    assert np.max(np.abs(back - uv)) < 1e-6
+
+
+def test_correction_is_not_identity_for_the_reference_lens(reference_camera):
+    # guards the round trip above against a model that silently does nothing
+    uv = reference_camera.pixel_grid(5, 5)
+    ideal_px = reference_camera.ideal_from_pixel(uv) / 0.0067
+    plain_px = (reference_camera.sensor_from_pixel(uv) - [0.031, -0.024]) / 0.0067
+    assert np.max(np.linalg.norm(ideal_px - plain_px, axis=1)) > 5.0
+
+
+def test_sensor_coordinates_follow_design_convention():
+    cam = BrownFraser(width=1300, height=1030, pixel_size_mm=(0.0067, 0.0067), c_mm=12.0)
+    assert np.allclose(cam.sensor_from_pixel([[649.5, 514.5]]), 0.0)
+    assert np.allclose(cam.sensor_from_pixel([[0.0, 0.0]]), [[-649.5 * 0.0067, -514.5 * 0.0067]])
+
+
+def test_projection_obeys_collinearity_without_distortion():
+    cam = BrownFraser(width=1300, height=1030, pixel_size_mm=(0.0067, 0.0067), c_mm=12.0)
+    p = np.array([[100.0, -50.0, 1000.0]])
+    uv = cam.pixel_from_camera(p)
+    assert np.allclose(uv, [[649.5 + 12 * 0.1 / 0.0067, 514.5 - 12 * 0.05 / 0.0067]])
+    assert np.all(np.isnan(cam.pixel_from_camera([[0.0, 0.0, -5.0]])))
+
+
+def test_rays_point_back_at_the_projected_point(reference_camera, rng):
+    p = rng.uniform([-300, -250, 800], [300, 250, 1500], size=(50, 3))
+    uv = reference_camera.pixel_from_camera(p)
+    rays = reference_camera.rays_from_pixel(uv)
+    assert np.allclose(rays, p / np.linalg.norm(p, axis=1, keepdims=True), atol=1e-10)
+
+
+def test_ideal_from_pixel_jacobian_matches_finite_differences(reference_camera):
+    uv = np.array([[10.0, 20.0], [1200.0, 900.0], [650.0, 515.0]])
+    J = reference_camera.ideal_from_pixel_jacobian(uv)
+    h = 1e-4
+    for k in range(2):
+        d = np.zeros(2)
+        d[k] = h
+        num = (reference_camera.ideal_from_pixel(uv + d) - reference_camera.ideal_from_pixel(uv - d)) / (2 * h)
+        assert np.allclose(J[:, :, k], num, rtol=1e-6, atol=1e-12)
+
+
+def test_camera_json_round_trip_keeps_every_parameter(reference_camera):
+    d = json.loads(json.dumps(reference_camera.to_dict()))
+    assert d["model"] == "brown-fraser"
+    d["unknown_future_key"] = 1
+    assert BrownFraser.from_dict(d) == reference_camera
+
+
+@pytest.mark.parametrize(
+    "bad, message",
+    [({"width": 10}, "missing the key"), ({"model": "fisheye"}, "unsupported camera model"), ([], "JSON object")],
+)
+def test_camera_json_errors_say_what_is_wrong(bad, message):
+    with pytest.raises(ValueError, match=message):
+        BrownFraser.from_dict(bad)
+
+
+def test_opencv_conversion_reproduces_projection_and_reports_its_residual(reference_camera, rng):
+    fit = opencv_from_brown(reference_camera)
+    assert fit.rms_px < 0.05  # B2 (shear) and the K3 vs r^6 scaling differ; the rest is representable
+    p = rng.uniform([-300, -250, 900], [300, 250, 1200], size=(200, 3))
+    uv_bf = reference_camera.pixel_from_camera(p)
+    uv_cv, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), fit.K, fit.dist)
+    assert np.max(np.linalg.norm(uv_cv.reshape(-1, 2) - uv_bf, axis=1)) < 4 * fit.max_px + 1e-3
+
+
+def test_brown_from_opencv_round_trip(reference_camera):
+    cv = opencv_from_brown(reference_camera)
+    back = brown_from_opencv(cv.K, cv.dist, 1300, 1030, (0.0067, 0.0067))
+    assert back.rms_px < 0.05
+    uv = reference_camera.pixel_grid(21, 17)
+    diff = (back.camera.ideal_from_pixel(uv) - reference_camera.ideal_from_pixel(uv)) / 0.0067
+    assert np.max(np.abs(diff)) < 0.2
