@@ -60,3 +60,66 @@ class Failure:
     @classmethod
     def from_error(cls, e: SolveError) -> Failure:
         return cls(reason=e.reason, message=e.message, details=e.details or None)
+
+
+@dataclass(frozen=True)
+class TargetObservation:
+    """One identified target in one image: measured ``uv`` px and its adjustment residual px."""
+
+    id: str
+    uv: tuple[float, float]
+    residual_px: tuple[float, float]
+    coded: bool
+    used: bool = True
+
+
+@dataclass(frozen=True)
+class PoseResult:
+    """A measured camera pose with its precision (DESIGN section 4)."""
+
+    T_field_camera: Any  # (4, 4) float, mm
+    sigma_position_mm: Any  # (3,) along the field axes
+    sigma_rotation_deg: Any  # (3,) small rotations about the field axes
+    rms_px: float
+    sigma0_px: float
+    targets: tuple[TargetObservation, ...]
+    n_iter: int = 0
+
+    ok: bool = True
+
+    @property
+    def n_coded(self) -> int:
+        return sum(1 for t in self.targets if t.coded and t.used)
+
+    @property
+    def n_uncoded(self) -> int:
+        return sum(1 for t in self.targets if not t.coded and t.used)
+
+    @property
+    def rejected_ids(self) -> list[str]:
+        return [t.id for t in self.targets if not t.used]
+
+    def to_dict(self) -> dict[str, Any]:
+        def r(x: float, nd: int = 6) -> float:
+            return round(float(x), nd)
+
+        return {
+            "ok": True,
+            "T_field_camera": [[r(v, 9) for v in row] for row in self.T_field_camera],
+            "sigma_position_mm": [r(v) for v in self.sigma_position_mm],
+            "sigma_rotation_deg": [r(v, 8) for v in self.sigma_rotation_deg],
+            "rms_px": r(self.rms_px, 5),
+            "sigma0_px": r(self.sigma0_px, 5),
+            "n_coded": self.n_coded,
+            "n_uncoded": self.n_uncoded,
+            "rejected": self.rejected_ids,
+            "targets": [
+                {
+                    "id": t.id,
+                    "uv": [r(t.uv[0], 4), r(t.uv[1], 4)],
+                    "residual_px": [r(t.residual_px[0], 4), r(t.residual_px[1], 4)],
+                    **({} if t.used else {"rejected": True}),
+                }
+                for t in self.targets
+            ],
+        }

@@ -1,0 +1,269 @@
+"""Closed-form space resection (the paper, section 4.3, first stage): a pose with no prior.
+
+For a planar field, the plane-to-plane transformation (a homography from >= 4
+points, Fischler & Bolles) gives the projection centre in front of the plane,
+and the rotation follows from the known centre (Kraus) as the one that best
+aligns the field rays from the centre with the image rays. A non-planar field's
+centre comes from a DLT on ideal coordinates (OpenCV's P3P over all triples for
+4-5 points, a case the paper does not treat). Written by hand because it is the
+paper's method; :mod:`service.core.resection` refines its result.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from service.core.camera_model import BrownFraser
+from service.core.frames import make_T
+from service.core.results import Reason, SolveError
+
+Array = NDArray[np.float64]
+
+#: Below this ratio of the smallest to the largest spread of the field points the
+#: planar (homography) closed form is used; it is only a start, so a field with
+#: some relief is still refined exactly by the adjustment.
+PLANAR_RATIO = 0.1
+#: Below this ratio the field counts as flat (1 mm over 1 m) and only the planar
+#: closed form is tried; between it and PLANAR_RATIO both closed forms are.
+FLAT_RATIO = 1e-3
+#: Below this ratio of the second to the first spread, points count as collinear.
+COLLINEAR_RATIO = 1e-3
+def check_observations(p_field: ArrayLike, uv: ArrayLike) -> tuple[Array, Array]:
+    p = np.asarray(p_field, dtype=np.float64)
+    q = np.asarray(uv, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"p_field must have shape (N, 3), got {p.shape}")
+    if q.ndim != 2 or q.shape[1] != 2:
+        raise ValueError(f"uv must have shape (N, 2), got {q.shape}")
+    if len(p) != len(q):
+        raise ValueError(f"p_field has {len(p)} points but uv has {len(q)}")
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+        raise SolveError(Reason.bad_input, "Field or image coordinates contain NaN or infinity.")
+    if len(p) < 4:
+        msg = f"Resection needs at least 4 targets, got {len(p)}."
+        raise SolveError(Reason.too_few_targets, msg, {"n_targets": len(p)})
+    return p, q
+
+
+def check_geometry(p: Array, xy: Array) -> Array:
+    """Raise on collinear field or image points; return the field points' spread (3,)."""
+    dp = p - p.mean(axis=0)
+    s = np.sqrt(np.maximum(np.linalg.eigvalsh(dp.T @ dp)[::-1], 0.0))  # spread along principal axes
+    if s[0] <= 0 or s[1] < COLLINEAR_RATIO * s[0]:
+        msg = "The field points are collinear (or coincide): the rotation about them is unknown."
+        raise SolveError(Reason.degenerate_geometry, msg)
+    d = xy - xy.mean(axis=0)
+    sxx, syy, sxy = d[:, 0] @ d[:, 0], d[:, 1] @ d[:, 1], d[:, 0] @ d[:, 1]
+    # Closed-form eigenvalues of the 2x2 scatter matrix.
+    half_tr, root = 0.5 * (sxx + syy), np.hypot(0.5 * (sxx - syy), sxy)
+    s_img = np.sqrt(np.maximum([half_tr + root, half_tr - root], 0.0))
+    if s_img[0] <= 0 or s_img[1] < COLLINEAR_RATIO * s_img[0]:
+        msg = "The image points are collinear: the camera looks at the field edge-on."
+        raise SolveError(Reason.degenerate_geometry, msg)
+    return s
+
+
+def _normalizer(points: Array) -> Array:
+    """Hartley's similarity (d+1, d+1): centroid to the origin, RMS distance sqrt(d)."""
+    d = points.shape[1]
+    m = points.mean(axis=0)
+    rms = np.sqrt(np.mean(np.sum((points - m) ** 2, axis=1)))
+    s = np.sqrt(d) / rms
+    N = np.eye(d + 1)
+    N[:d, :d] *= s
+    N[:d, d] = -s * m
+    return N
+
+
+def _null_vector(A: Array, what: str) -> Array:
+    """Right null vector of a DLT system; raise if it is not unique (degenerate points)."""
+    # Eigen-decomposition of the small A^T A: far cheaper than an SVD of the tall A,
+    # and Hartley normalisation keeps its conditioning harmless for a start.
+    ev, V = np.linalg.eigh(A.T @ A)
+    if ev[1] < 1e-18 * ev[-1]:
+        raise SolveError(
+            Reason.degenerate_geometry,
+            f"The points do not determine a unique {what} (too many of them are collinear).",
+        )
+    return V[:, 0]
+
+
+def _rotation_from_centre(p: Array, xy: Array, c: float, C_field: Array) -> Array:
+    """Kraus: R_field_camera aligning the image rays with the field rays from a known centre.
+
+    The orthogonal Procrustes solution over all points, so every point counts,
+    not only the four the paper's closed form needs.
+    """
+    d = p - C_field
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    b = np.column_stack([xy, np.full(len(xy), c)])
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    U, _, Vt = np.linalg.svd(d.T @ b)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def _centre_planar(p: Array, n_img: Array) -> Array:
+    """Projection centre (3,) mm from the plane-to-plane transformation, in front of the plane."""
+    m = p.mean(axis=0)
+    _, V = np.linalg.eigh((p - m).T @ (p - m))
+    e = V[:, ::-1].T.copy()  # rows: in-plane axes by decreasing spread, then the normal
+    if np.linalg.det(e) < 0:
+        e[2] *= -1
+    ab = (p - m) @ e[:2].T  # in-plane coordinates, mm
+    Na, Ni = _normalizer(ab), _normalizer(n_img)
+    a = ab @ Na[:2, :2].T + Na[:2, 2]
+    x = n_img @ Ni[:2, :2].T + Ni[:2, 2]
+    n = len(a)
+    A = np.zeros((2 * n, 9))
+    A[0::2, 0:2] = a
+    A[0::2, 2] = 1.0
+    A[1::2, 3:5] = a
+    A[1::2, 5] = 1.0
+    A[0::2, 6:8] = -x[:, :1] * a
+    A[0::2, 8] = -x[:, 0]
+    A[1::2, 6:8] = -x[:, 1:] * a
+    A[1::2, 8] = -x[:, 1]
+    H = np.linalg.solve(Ni, _null_vector(A, "plane-to-plane transformation").reshape(3, 3) @ Na)
+    # H ~ [r1 r2 t] of T_camera_plane; of the two mirror solutions the one with
+    # the points in front of the camera has positive depth at the centroid (a = 0).
+    lam = np.sign(H[2, 2]) / np.sqrt(np.linalg.norm(H[:, 0]) * np.linalg.norm(H[:, 1]))
+    r1, r2, t = lam * H[:, 0], lam * H[:, 1], lam * H[:, 2]
+    r3 = np.array(
+        [
+            r1[1] * r2[2] - r1[2] * r2[1],
+            r1[2] * r2[0] - r1[0] * r2[2],
+            r1[0] * r2[1] - r1[1] * r2[0],
+        ]
+    )
+    U, _, Wt = np.linalg.svd(np.column_stack([r1, r2, r3]))
+    R_camera_plane = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Wt)]) @ Wt
+    C_plane = -R_camera_plane.T @ t
+    return m + C_plane @ e
+
+
+def _centre_dlt(p: Array, n_img: Array) -> Array:
+    """Projection centre (3,) mm by a DLT on ideal coordinates (non-planar field, >= 6 points)."""
+    Np, Ni = _normalizer(p), _normalizer(n_img)
+    X = np.column_stack([p @ Np[:3, :3].T + Np[:3, 3], np.ones(len(p))])
+    x = n_img @ Ni[:2, :2].T + Ni[:2, 2]
+    n = len(p)
+    A = np.zeros((2 * n, 12))
+    A[0::2, 0:4] = X
+    A[0::2, 8:12] = -x[:, :1] * X
+    A[1::2, 4:8] = X
+    A[1::2, 8:12] = -x[:, 1:] * X
+    P = np.linalg.solve(Ni, _null_vector(A, "projection matrix").reshape(3, 4) @ Np)
+    M = P[:, :3]
+    det = np.linalg.det(M)
+    if abs(det) < 1e-12 * np.linalg.norm(M) ** 3:
+        raise SolveError(Reason.degenerate_geometry, "The DLT projection matrix is singular.")
+    # P ~ lam [R | t] with R proper, so sign(det M) = sign(lam) fixes the depth sign.
+    depth = np.sign(det) * (np.column_stack([p, np.ones(n)]) @ P[2])
+    if np.mean(depth > 0) < 0.5:
+        raise SolveError(
+            Reason.behind_camera,
+            "The image points are only consistent with the field lying behind the camera.",
+            {"n_behind": int(np.sum(depth <= 0))},
+        )
+    return -np.linalg.solve(M, P[:, 3])
+
+
+def _centre_p3p(p: Array, n_img: Array) -> Array:
+    return _pose_p3p(p, n_img)[:3, 3]
+
+
+def _image_error(T_field_camera: Array, p: Array, n_img: Array) -> float:
+    """Sum of squared errors in normalized image coordinates; inf if a point is behind."""
+    pc = (p - T_field_camera[:3, 3]) @ T_field_camera[:3, :3]
+    if np.any(pc[:, 2] <= 0):
+        return np.inf
+    return float(np.sum((pc[:, :2] / pc[:, 2:3] - n_img) ** 2))
+
+
+def _pose_p3p(p: Array, n_img: Array) -> Array:
+    """T_field_camera of 4-5 non-planar points, too few for a DLT.
+
+    OpenCV's P3P on every triple (at most 10), keeping the solution with all
+    points in front and the smallest error over all points. This case is not
+    the paper's, so OpenCV's solver serves rather than one written here.
+    """
+    best, best_err = None, np.inf
+    for sel in itertools.combinations(range(len(p)), 3):
+        X, x = np.ascontiguousarray(p[list(sel)]), np.ascontiguousarray(n_img[list(sel)])
+        _, rvecs, tvecs = cv2.solveP3P(X, x, np.eye(3), None, flags=cv2.SOLVEPNP_P3P)
+        for rvec, tvec in zip(rvecs, tvecs, strict=True):
+            R_field_camera = cv2.Rodrigues(rvec)[0].T
+            T = make_T(R_field_camera, -R_field_camera @ tvec.ravel())
+            err = _image_error(T, p, n_img)
+            if err < best_err:
+                best, best_err = T, err
+    if best is None:
+        raise SolveError(Reason.behind_camera, "No pose puts all targets in front of the camera.")
+    return best
+
+
+def closed_form_ideal(p: Array, xy: Array, c: float, spread: Array) -> Array:
+    n_img = xy / c
+    planar = spread[2] < PLANAR_RATIO * spread[0]
+    if planar and spread[2] < FLAT_RATIO * spread[0]:
+        C = _centre_planar(p, n_img)
+        return make_T(_rotation_from_centre(p, xy, c, C), C)
+    # A field with some relief: the homography (a start that ignores the relief)
+    # and the 3-D closed form (ill-conditioned when the relief is small) each fail
+    # somewhere, so take the one that fits the image better.
+    solvers: list[Callable[[Array, Array], Array]] = [_centre_planar] if planar else []
+    solvers.append(_centre_dlt if len(p) >= 6 else _centre_p3p)
+    best, best_err, error = None, np.inf, None
+    for solve in solvers:
+        try:
+            C = solve(p, n_img)
+        except SolveError as e:
+            error = e
+            continue
+        T = make_T(_rotation_from_centre(p, xy, c, C), C)
+        err = _image_error(T, p, n_img)
+        if best is None or err < best_err:
+            best, best_err = T, err
+    if best is None:
+        assert error is not None
+        raise error
+    return best
+
+
+def resect_closed_form(camera: BrownFraser, p_field: ArrayLike, uv: ArrayLike) -> Array:
+    """Camera pose from image points without a prior pose (the paper's closed form).
+
+    Parameters
+    ----------
+    camera : BrownFraser
+        Interior orientation.
+    p_field : (N, 3) float, mm
+        Target coordinates in the field frame, N >= 4.
+    uv : (N, 2) float, px
+        Their measured pixel coordinates.
+
+    Returns
+    -------
+    T_field_camera : (4, 4) float
+        Pose of the camera in the field (translation = projection centre, mm).
+
+    Raises
+    ------
+    SolveError
+        ``too_few_targets`` for N < 4, ``degenerate_geometry`` for collinear field
+        or image points, ``behind_camera`` if the points can only lie behind the
+        camera, ``bad_input`` for non-finite coordinates.
+    """
+    p, q = check_observations(p_field, uv)
+    xy = camera.ideal_from_pixel(q)
+    spread = check_geometry(p, xy)
+    return closed_form_ideal(p, xy, camera.c_mm, spread)
+
+
+# -- adjustment -----------------------------------------------------------------
