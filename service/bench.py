@@ -1,0 +1,34 @@
+"""``posecell bench``: named benchmark sections, each printing a markdown table."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable
+
+
+def _accuracy(args: argparse.Namespace) -> str:
+    from service import bench_accuracy
+
+    return bench_accuracy.run(trials=args.trials, seed=args.seed)
+
+
+SECTIONS: dict[str, Callable[[argparse.Namespace], str]] = {
+    "accuracy": _accuracy,
+}
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    names = args.sections or list(SECTIONS)
+    unknown = [n for n in names if n not in SECTIONS]
+    if unknown:
+        print(f"posecell bench: unknown section(s) {', '.join(unknown)}; "
+              f"known: {', '.join(SECTIONS)}", file=sys.stderr)
+        return 2
+    for name in names:
+        t0 = time.perf_counter()
+        text = SECTIONS[name](args)
+        sys.stdout.write(f"## {name}\n\n{text}\n\n_(section took {time.perf_counter() - t0:.1f} s)_\n\n")
+        sys.stdout.flush()
+    return 0

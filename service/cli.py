@@ -1,0 +1,164 @@
+"""The ``posecell`` console script: thin verbs over the engine (DESIGN section 5).
+
+Bad input never shows a traceback: it prints one sentence on stderr and exits
+non-zero (2 for a usage or file problem, 1 for a measurement that failed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from service import formats
+from service.core.frames import check_T
+from service.core.results import Failure, SolveError
+
+EXIT_FAILED = 1
+EXIT_BAD_INPUT = 2
+
+
+class CliError(Exception):
+    """A problem the user can fix; the message is shown as it is."""
+
+
+def _print_json(obj: Any) -> None:
+    sys.stdout.write(json.dumps(obj) + "\n")
+    sys.stdout.flush()
+
+
+# -- verbs -------------------------------------------------------------------
+
+
+def cmd_resect(args: argparse.Namespace) -> int:
+    from service.pipeline import resect_observations
+
+    camera = formats.read_camera(args.camera)
+    field = formats.read_field(args.field)
+    ids, uv = formats.read_observations(args.points)
+    unknown = [t for t in ids if t not in field.index]
+    if unknown:
+        raise CliError(f"{args.points}: target ids not in the field {args.field}: {', '.join(unknown[:10])}")
+    try:
+        result = resect_observations(camera, field, ids, uv, sigma_px=args.sigma_px)
+    except SolveError as e:
+        _print_json(Failure.from_error(e).to_dict())
+        print(f"posecell resect: {e.message}", file=sys.stderr)
+        return EXIT_FAILED
+    _print_json(result.to_dict())
+    return 0
+
+
+def cmd_calibrate_handeye(args: argparse.Namespace) -> int:
+    from service.core.handeye import calibrate_handeye
+
+    T_base_flange, T_field_camera = formats.read_handeye_samples(args.samples)
+    for name, stack in (("T_base_flange", T_base_flange), ("T_field_camera", T_field_camera)):
+        for k, T in enumerate(stack):
+            try:
+                check_T(T, f"sample #{k} {name}", atol=1e-4)
+            except ValueError as e:
+                raise CliError(f"{args.samples}: {e}") from None
+    try:
+        result = calibrate_handeye(T_base_flange, T_field_camera)
+    except SolveError as e:
+        _print_json(Failure.from_error(e).to_dict())
+        print(f"posecell calibrate handeye: {e.message}", file=sys.stderr)
+        return EXIT_FAILED
+    out = {"ok": True, **result.to_dict()}
+    if args.output:
+        formats.write_json_atomic(args.output, out)
+    _print_json(out)
+    for w in result.warnings:
+        print(f"posecell calibrate handeye: warning: {w}", file=sys.stderr)
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from service.bench import run_bench
+
+    return run_bench(args)
+
+
+# -- parser ------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="posecell",
+        description="Real-time photogrammetric robot pose measurement (see README.md).",
+    )
+    sub = p.add_subparsers(dest="verb", metavar="VERB")
+    sub.required = True
+
+    r = sub.add_parser(
+        "resect",
+        help="camera pose from given image points (space resection)",
+        description="Space resection from image points [{'id':..,'uv':[u,v]}] of known field targets; "
+        "prints one pose JSON line (DESIGN section 4).",
+    )
+    r.add_argument("--camera", required=True, help="camera.json (Brown/Fraser model)")
+    r.add_argument("--field", required=True, help="field.json or field.csv (target coordinates, mm)")
+    r.add_argument("--points", required=True, help="observations JSON: [{'id': ..., 'uv': [u, v]}, ...]")
+    r.add_argument(
+        "--sigma-px",
+        type=float,
+        default=None,
+        help="a-priori image precision in px; default: scale the covariance by the a-posteriori sigma0",
+    )
+    r.set_defaults(func=cmd_resect)
+
+    cal = sub.add_parser("calibrate", help="calibration workflows").add_subparsers(dest="what", metavar="WHAT")
+    cal.required = True
+    he = cal.add_parser(
+        "handeye",
+        help="hand-eye (T_flange_camera) and robot-world (T_base_field) calibration",
+        description="Solves T_base_flange_j @ X = Z @ T_field_camera_j for X = T_flange_camera and "
+        "Z = T_base_field (Tsai-Lenz, then a joint least-squares refinement).",
+    )
+    he.add_argument(
+        "--samples", required=True, help="JSON list of {'T_base_flange': 4x4, 'T_field_camera': 4x4} in mm"
+    )
+    he.add_argument("-o", "--output", help="also write the result to this JSON file")
+    he.set_defaults(func=cmd_calibrate_handeye)
+
+    b = sub.add_parser(
+        "bench",
+        help="speed and accuracy benchmarks (DESIGN section 7)",
+        description="Runs the benchmark sections and prints their tables (markdown).",
+    )
+    b.add_argument(
+        "sections",
+        nargs="*",
+        default=[],
+        help="sections to run (default: all): accuracy",
+    )
+    b.add_argument("--trials", type=int, default=500, help="Monte-Carlo trials for the accuracy tables")
+    b.add_argument("--seed", type=int, default=1)
+    b.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    func: Callable[[argparse.Namespace], int] = args.func
+    prog = f"posecell {args.verb}"
+    try:
+        return func(args)
+    except (formats.FormatError, CliError) as e:
+        print(f"{prog}: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except SolveError as e:
+        print(f"{prog}: {e.message}", file=sys.stderr)
+        return EXIT_FAILED
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
