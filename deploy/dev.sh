@@ -51,7 +51,8 @@ cmd=${1:-help}
 shift || true
 case "$cmd" in
     setup) setup ;;
-    serve) setup; exec "$venv/bin/posecell" serve "$@" ;;
+    # until the HTTP service exists (issue 5), "serve" runs the simulated cell demo
+    serve) setup; exec "$venv/bin/posecell" demo "$@" ;;
     test)
         setup
         exec "$venv/bin/python" -m pytest "$@"

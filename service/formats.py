@@ -216,3 +216,33 @@ def read_handeye_samples(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.n
         A.append(matrix4_from_json(s["T_base_flange"], f"{path}: sample #{k} T_base_flange"))
         B.append(matrix4_from_json(s["T_field_camera"], f"{path}: sample #{k} T_field_camera"))
     return np.array(A), np.array(B)
+
+
+# -- images ------------------------------------------------------------------
+
+
+def read_image(path: str | os.PathLike[str]) -> np.ndarray:
+    """A grey image (H, W) uint8 or uint16 from PNG, TIFF or PGM; colour is converted to grey."""
+    import cv2  # only the image verbs need OpenCV's codecs
+
+    p = Path(path)
+    if not p.is_file():
+        raise FormatError(f"{p}: no such file")
+    image = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise FormatError(f"{p}: cannot be read as an image (PNG, TIFF or PGM, 8 or 16 bit)")
+    if image.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        image = cv2.cvtColor(image, code)
+    if image.dtype not in (np.uint8, np.uint16):
+        raise FormatError(f"{p}: pixel type {image.dtype} is not supported (8 or 16 bit grey)")
+    return image
+
+
+def write_image(path: str | os.PathLike[str], image: np.ndarray) -> None:
+    import cv2
+
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(p), image):
+        raise FormatError(f"{p}: could not write the image")

@@ -1,20 +1,38 @@
-"""From observations (and later frames) to a :class:`PoseResult`: synchronous, no threads, no I/O."""
+"""From a grey IR frame (or given observations) to a :class:`PoseResult`: synchronous, no threads, no I/O.
+
+Full frame (the paper's two steps): detect all blobs, decode the coded ones,
+resect from the coded targets, predict every uncoded target from that pose and
+match it to the nearest blob, then adjust over all targets with gross errors
+rejected. ROI mode: predict every target from the last poses, measure only small
+windows around the predictions, adjust from the predicted pose; fall back to the
+full frame when that fails. Stage timings are recorded for the benchmark and the
+service's latency report.
+"""
 
 from __future__ import annotations
 
+import time
+from collections import deque
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
 from service.core.camera_model import BrownFraser
+from service.core.decode import read_codes
+from service.core.detect import Blobs, DetectSettings, detect_blobs, measure_windows
 from service.core.field import Field
+from service.core.identify import eccentricity_px, match_coded, match_predicted, project_field
 from service.core.resection import ResectionResult, resect
-from service.core.results import PoseResult, TargetObservation
+from service.core.results import Failure, PoseResult, Reason, SolveError, TargetObservation
+from service.core.tracking import PoseSample, predict_pose
+
+Array = NDArray[np.float64]
 
 
 def pose_result_from_resection(
-    result: ResectionResult, field: Field, ids: Sequence[str], uv: NDArray[np.float64]
+    result: ResectionResult, field: Field, ids: Sequence[str], uv: Array
 ) -> PoseResult:
     """Attach target ids, codes and residuals to a resection result."""
     rows = field.indices_of(list(ids))
@@ -43,10 +61,10 @@ def resect_observations(
     camera: BrownFraser,
     field: Field,
     ids: Sequence[str],
-    uv: NDArray[np.float64],
+    uv: Array,
     *,
     sigma_px: float | None = None,
-    T_field_camera_init: NDArray[np.float64] | None = None,
+    T_field_camera_init: Array | None = None,
 ) -> PoseResult:
     """Resection from identified image points ``uv`` (N, 2) px of field targets ``ids``.
 
@@ -56,3 +74,193 @@ def resect_observations(
     p_field = field.xyz[field.indices_of(list(ids))]
     result = resect(camera, p_field, uv, sigma_px=sigma_px, T_field_camera_init=T_field_camera_init)
     return pose_result_from_resection(result, field, ids, uv)
+
+
+@dataclass(frozen=True)
+class MeasureSettings:
+    """Processing options of one camera (all have defaults that suit the reference scene)."""
+
+    detect: DetectSettings = field(default_factory=DetectSettings)
+    match_tolerance_px: float = 4.0
+    min_coded: int = 4
+    min_targets: int = 6
+    sigma_px: float | None = None
+    correct_eccentricity: bool = True
+    roi: bool = True
+    roi_min_fraction: float = 0.7  # of predicted targets found, else full frame
+    roi_max_sigma0_px: float = 0.3
+    roi_prediction_error_px: float = 4.0  # how far a target may move from its constant-velocity prediction
+    max_sigma0_px: float = 0.5
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One frame's result, how it was obtained and what it cost."""
+
+    result: PoseResult | Failure
+    mode: str  # "full" or "roi"
+    timings_ms: dict[str, float]
+    n_blobs: int = 0
+    rejections: dict[str, int] | None = None
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.t = time.perf_counter()
+        self.ms: dict[str, float] = {}
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.ms[name] = self.ms.get(name, 0.0) + (now - self.t) * 1e3
+        self.t = now
+
+
+class FrameMeasurer:
+    """Measures frames of one camera against one field, keeping the pose history for ROI tracking."""
+
+    def __init__(self, camera: BrownFraser, field: Field, settings: MeasureSettings | None = None) -> None:
+        self.camera = camera
+        self.field = field
+        self.settings = settings or MeasureSettings()
+        self._history: deque[PoseSample] = deque(maxlen=2)
+        self._radius_mm = np.where(
+            np.isfinite(field.diameters_mm), field.diameters_mm, np.where(field.is_coded, 10.0, 6.0)
+        ) / 2.0
+
+    def reset(self) -> None:
+        """Forget the pose history: the next frame is measured in full."""
+        self._history.clear()
+
+    # -- public --------------------------------------------------------------
+
+    def measure(self, image: NDArray[np.generic], t_s: float | None = None) -> Outcome:
+        """Measure one frame taken at ``t_s`` (s; None: no tracking across frames)."""
+        s = self.settings
+        if s.roi and t_s is not None:
+            T_pred = predict_pose(list(self._history), t_s)
+            if T_pred is not None:
+                # without a velocity yet, the target may be anywhere the last motion could take it
+                slack = 1.0 if len(self._history) >= 2 else 2.5
+                out = self._measure_roi(image, T_pred, slack)
+                if out is not None:
+                    self._remember(out.result, t_s)
+                    return out
+        out = self._measure_full(image)
+        if t_s is not None:
+            self._remember(out.result, t_s)
+        return out
+
+    # -- internals -----------------------------------------------------------
+
+    def _remember(self, result: PoseResult | Failure, t_s: float) -> None:
+        if isinstance(result, PoseResult):
+            self._history.append(PoseSample(np.asarray(result.T_field_camera), t_s))
+        else:
+            self._history.clear()
+
+    def _finish(
+        self, rows: NDArray[np.int64], uv: Array, T_init: Array | None, clock: _Clock
+    ) -> PoseResult:
+        """Adjust over matched targets (with eccentricity correction) and build the result."""
+        s = self.settings
+        p = self.field.xyz[rows]
+        if s.correct_eccentricity and T_init is not None:
+            # the offsets are hundredths of a pixel and vary slowly with the pose, so the
+            # approximate pose is good enough and saves a second adjustment
+            uv = uv - eccentricity_px(self.camera, p, self._radius_mm[rows], T_init, uv)
+        res = resect(self.camera, p, uv, sigma_px=s.sigma_px, T_field_camera_init=T_init)
+        clock.lap("resect")
+        if res.sigma0_px > s.max_sigma0_px:
+            raise SolveError(
+                Reason.no_convergence,
+                f"the targets disagree with the pose by {res.sigma0_px:.2f} px (sigma0), "
+                f"more than {s.max_sigma0_px} px: check the camera calibration and the field",
+            )
+        ids = [self.field.ids[r] for r in rows]
+        return pose_result_from_resection(res, self.field, ids, uv)
+
+    def _measure_full(self, image: NDArray[np.generic]) -> Outcome:
+        s = self.settings
+        clock = _Clock()
+        try:
+            blobs, rejections = detect_blobs(image, s.detect)
+        except SolveError as e:
+            return Outcome(Failure.from_error(e), "full", clock.ms)
+        clock.lap("detect")
+        counts = rejections.counts
+        try:
+            result = self._identify_and_resect(image, blobs, clock)
+        except SolveError as e:
+            return Outcome(Failure.from_error(e), "full", clock.ms, len(blobs), counts)
+        return Outcome(result, "full", clock.ms, len(blobs), counts)
+
+    def _identify_and_resect(self, image: NDArray[np.generic], blobs: Blobs, clock: _Clock) -> PoseResult:
+        s = self.settings
+        if len(blobs) < s.min_coded:
+            raise SolveError(
+                Reason.too_few_targets,
+                f"{len(blobs)} targets found in the image, at least {s.min_coded} coded ones are needed",
+            )
+        readings = read_codes(image, blobs.ellipse, blobs.background_dn)
+        codes_read = np.array([-1 if r is None else r.code for r in readings], dtype=np.int64)
+        coded = match_coded(self.field, codes_read)
+        clock.lap("decode")
+        if len(coded.rows) < s.min_coded:
+            raise SolveError(
+                Reason.too_few_targets,
+                f"{len(coded.rows)} coded targets of the field identified, at least {s.min_coded} are needed",
+                {"n_blobs": len(blobs), "n_coded": len(coded.rows)},
+            )
+        res = resect(
+            self.camera, self.field.xyz[coded.rows], blobs.uv[coded.blobs], sigma_px=s.sigma_px
+        )
+        coded_rows = coded.rows[res.inliers]
+        coded_blobs = coded.blobs[res.inliers]
+        # the paper's second step: every other target, predicted from the coded pose
+        rows, uv_pred = project_field(self.camera, self.field, res.T_field_camera, margin_px=-2.0)
+        todo = ~np.isin(rows, coded_rows)
+        taken = np.zeros(len(blobs), bool)
+        taken[coded_blobs] = True
+        m = match_predicted(uv_pred[todo], rows[todo], blobs.uv, s.match_tolerance_px, taken)
+        clock.lap("identify")
+        all_rows = np.concatenate([coded_rows, m.rows])
+        all_blobs = np.concatenate([coded_blobs, m.blobs])
+        if len(all_rows) < s.min_targets:
+            raise SolveError(Reason.too_few_targets, f"only {len(all_rows)} targets identified")
+        return self._finish(all_rows, blobs.uv[all_blobs], res.T_field_camera, clock)
+
+    def _measure_roi(self, image: NDArray[np.generic], T_pred: Array, slack: float = 1.0) -> Outcome | None:
+        s = self.settings
+        clock = _Clock()
+        rows, uv_pred = project_field(self.camera, self.field, T_pred, margin_px=4.0)
+        if len(rows) < s.min_targets:
+            return None
+        half = self._window_half_size(rows, T_pred, slack)
+        try:
+            blobs, found = measure_windows(image, uv_pred, half, s.detect)
+        except (ValueError, SolveError):
+            return None
+        clock.lap("windows")
+        ok = found >= 0
+        if ok.sum() < max(s.min_targets, s.roi_min_fraction * len(rows)):
+            return None
+        try:
+            result = self._finish(rows[ok], blobs.uv[found[ok]], T_pred, clock)
+        except SolveError:
+            return None
+        if result.sigma0_px > s.roi_max_sigma0_px:
+            return None
+        return Outcome(result, "roi", clock.ms, int(ok.sum()))
+
+    def _window_half_size(self, rows: NDArray[np.int64], T_field_camera: Array, slack: float = 1.0) -> NDArray[np.int64]:
+        """Half window (px) per target: the disk's image radius, the blur, and the prediction error.
+
+        A coded target's window stays inside its dark gap (the ring starts at 2 R).
+        """
+        s = self.settings
+        depth = np.abs((self.field.xyz[rows] - T_field_camera[:3, 3]) @ T_field_camera[:3, 2])
+        r_px = self._radius_mm[rows] * self.camera.c_mm / np.maximum(depth, 1.0) / self.camera.mean_pixel_size_mm
+        half = np.ceil(r_px + 3.0 + slack * s.roi_prediction_error_px)
+        coded = self.field.codes[rows] >= 0
+        half[coded] = np.minimum(half[coded], np.floor(2.0 * r_px[coded] - 2.0))
+        return np.maximum(half, 3).astype(np.int64)

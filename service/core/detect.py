@@ -1,0 +1,691 @@
+"""Sub-pixel measurement of bright targets in near-IR images (the paper, section 4.2).
+
+:func:`detect_blobs` finds and measures every target in a full frame;
+:func:`measure_windows` measures the targets in small windows around predicted
+positions (ROI tracking). Both use one primitive, vectorised over stacks of
+windows (:func:`_measure`).
+
+Full frame:
+
+1. Threshold: the background is the image shrunk 8x, blurred, opened over 120 px (which removes
+   the targets but keeps hot spots and gradients of the ring light) and blurred again; foreground
+   is brighter than it by half of ``min_contrast_dn`` (a scalar threshold where it is flat).
+2. Candidates: external contours (``cv2.findContours``, 3x faster than labelling with statistics)
+   and their polygon moments (Green's theorem, vectorised) reject specks, huge blobs, blobs at the
+   image border and the pieces of coded targets' rings (:func:`_neighbours`).
+3. Measurement in circular windows, one batch per window radius.
+
+Per window (the circle of radius ``h + 1/2``):
+
+- background: a plane through the rim (the outer 1.5 px), fitted to its pixels that are not
+  bright, so a ring-light gradient biases no centre;
+- centre: the background-corrected intensity-weighted centroid over the circle, unbiased for any
+  symmetric blur. All moments up to the fourth come from one matrix product with a table of
+  monomials; the plane's slopes are removed from them analytically (the circle is symmetric);
+- ellipse (what a coded-ring reader needs): the second moments less the isotropic blur variance
+  ``s``. With ``L`` the plateau (mean of the 3 x 3 pixels at the centre) and ``S`` the flux, the
+  disk's area is ``S / L = pi a b``, so ``s`` solves ``(l1 - s)(l2 - s) = (S / (4 pi L))**2``;
+- shape: a disk seen at any angle is a centrally symmetric, flat-topped ellipse. A notch or an
+  occluder makes third moments, two merged disks a fourth moment along the major axis unlike the
+  ellipse's, a bright spot a blob that is mostly "blur"; the fill (soft overlap with the ellipse
+  drawn with the same edge) catches other misfits. The moment statistics are compared with their
+  own predicted noise, so the tests hold for faint and bright targets alike. Notches that move
+  the centre by less than about 0.3 px (at the reference noise) are not detected;
+- precision ``sigma_px``: pixel noise propagated through the centroid (:func:`_measure`), with
+  the shot noise measured on the targets' plateaus.
+
+Pixel convention (DESIGN section 2): the centre of the top-left pixel is (0, 0).
+``min_contrast_dn`` is in 8-bit DN, scaled by ``full_scale / 255`` (the
+saturation level, by default the dtype's maximum), so the defaults suit 8-,
+12- and 16-bit images.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from functools import lru_cache
+
+import cv2
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from service.core.codes import RING_INNER, RING_OUTER
+from service.core.results import Reason, SolveError
+
+Array = NDArray[np.float64]
+f32, f64 = np.float32, np.float64
+
+REASONS = ("saturated", "cut_off", "merged_or_misshapen", "too_small", "too_big", "low_contrast", "ring")
+_SATURATED, _CUT_OFF, _MISSHAPEN, _TOO_SMALL, _TOO_BIG, _LOW_CONTRAST, _RING = range(len(REASONS))
+
+COARSE_STEP = 8  # px per coarse background sample
+COARSE_OPENING = 15  # coarse samples across the background's opening (120 px): wider than any target
+FLAT_BACKGROUND_FRACTION = 0.25  # of the segmentation level: a flatter background gets a scalar threshold
+WINDOW_MARGIN_PX = 2  # window radius beyond the thresholded blob, so the rim clears its blur tail
+# Steps of window radius: the windows within one step are measured together, at its largest radius.
+WINDOW_RADII = (4, 6, 8, 10, 12, 15, 18, 22, 27, 33, 40, 48, 58, 70, 84, 100, 120, 150)
+MAX_SATURATED_PX = 2  # more saturated pixels than this reject a blob
+MIN_POLYGON_FILL = 0.9  # contour area over its moments' ellipse area; below: a long arc or merged blob
+SHAPE_SIGMA = (3.0, 4.0)  # asymmetry and kurtosis may deviate this many times their noise ...
+SHAPE_FLOOR = (0.015, 0.05)  # ... plus this (pixel sampling): px, and unitless
+MIN_FLAT_TOP = 0.4  # a disk's own minor-axis variance exceeds 0.4 of the blurred blob's (0.7 at 2 px radius)
+MIN_PLATEAU_B_PX = 2.5  # blobs narrower than this have no flat 3 x 3 centre for the shot noise
+
+
+@dataclass(frozen=True)
+class DetectSettings:
+    """Filters and options of blob detection; levels in 8-bit DN (see the module docstring)."""
+
+    min_area_px: int = 6
+    max_area_px: int = 5000
+    min_contrast_dn: float = 20.0  # peak above local background, 8-bit DN
+    max_aspect: float = 4.0  # b/a < 1/max_aspect -> rejected (ring sectors, scratches)
+    min_fill: float = 0.6  # soft overlap of blob and ellipse; a gross misfit fails
+    saturation_dn: float | None = None  # default: the dtype max (255 / 65535)
+    border_px: int = 2  # blobs this close to the image border are cut off -> rejected
+    window_px: int = 0  # side of the measuring window; 0: automatic from blob size
+
+
+@dataclass(frozen=True)
+class Blobs:
+    """Measured targets (N of them), in no particular order.
+
+    uv : (N, 2) float, px -- background-corrected intensity-weighted centroid
+    ellipse : (N, 5) float -- u_c px, v_c px, a_px (semi-major), b_px (semi-minor), angle rad of the
+        major axis from +u towards +v in (-pi/2, pi/2]: the disk's edge, blur removed
+    sigma_px : (N,) float, px -- predicted standard deviation of each coordinate of ``uv``
+    area_px : (N,) float, px^2 -- flux over plateau level: the area of the disk's image
+    peak_dn, background_dn : (N,) float, DN -- brightest pixel; local background at the centre
+    fill : (N,) float -- soft overlap of the blob with its ellipse (1: a perfect ellipse)
+    """
+
+    uv: Array
+    ellipse: Array
+    sigma_px: Array
+    area_px: Array
+    peak_dn: Array
+    background_dn: Array
+    fill: Array
+
+    def __len__(self) -> int:
+        return int(self.uv.shape[0])
+
+    def take(self, index: NDArray[np.intp]) -> Blobs:
+        """The blobs at ``index`` (any numpy index), in that order."""
+        return Blobs(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
+
+@dataclass(frozen=True)
+class Rejections:
+    """Blobs found but not measured, and why.
+
+    reason_code : (K,) int -- index into :data:`REASONS`
+    box : (K, 4) int, px -- u0, v0, u1, v1 of the thresholded blob, inclusive
+    uv : (K, 2) float, px -- its centre (of the measurement where there was one)
+    """
+
+    reason_code: NDArray[np.intp]
+    box: NDArray[np.intp]
+    uv: Array
+
+    def __len__(self) -> int:
+        return int(self.reason_code.shape[0])
+
+    @property
+    def reason(self) -> NDArray[np.str_]:
+        """(K,) reason names."""
+        return np.asarray(REASONS)[self.reason_code]
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Rejected blobs per reason, every reason present."""
+        n = np.bincount(self.reason_code, minlength=len(REASONS))
+        return {r: int(c) for r, c in zip(REASONS, n, strict=True)}
+
+
+def _check_image(image: NDArray[np.generic]) -> NDArray[np.generic]:
+    img = np.asarray(image)
+    if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16):
+        raise SolveError(Reason.bad_image,
+                         f"Expected a 2-D uint8 or uint16 image, got {img.dtype} of shape {img.shape}.")
+    if min(img.shape) < 2 * COARSE_STEP:
+        raise SolveError(Reason.bad_image, f"The image ({img.shape[1]} x {img.shape[0]} px) is too small.")
+    return np.ascontiguousarray(img)
+
+
+def _levels(img: NDArray[np.generic], settings: DetectSettings) -> tuple[float, float, float]:
+    """(saturation level, contrast threshold, segmentation level) in the image's DN."""
+    full = float(np.iinfo(img.dtype).max if settings.saturation_dn is None else settings.saturation_dn)
+    if not full > 0:
+        raise ValueError(f"saturation_dn must be positive, got {settings.saturation_dn}")
+    contrast = settings.min_contrast_dn * full / 255.0
+    return full, contrast, 0.5 * contrast
+
+
+def _foreground(img: NDArray[np.generic], seg_dn: float) -> NDArray[np.uint8]:
+    """0/255 mask of the pixels brighter than the coarse background plus ``seg_dn``."""
+    h, w = img.shape
+    small = cv2.resize(img, (w // COARSE_STEP, h // COARSE_STEP), interpolation=cv2.INTER_LINEAR)
+    # blur first: an opening of noisy samples would sit below the mean background
+    small = cv2.blur(small.astype(f32), (5, 5), borderType=cv2.BORDER_REPLICATE)
+    k = cv2.getStructuringElement(cv2.MORPH_RECT, (COARSE_OPENING, COARSE_OPENING))
+    bg = cv2.morphologyEx(small, cv2.MORPH_OPEN, k, borderType=cv2.BORDER_REPLICATE)
+    bg = cv2.blur(bg, (5, 5), borderType=cv2.BORDER_REPLICATE)  # smooths the opening's steps
+    lo, hi = float(bg.min()), float(bg.max())
+    if hi - lo <= FLAT_BACKGROUND_FRACTION * seg_dn:
+        return cv2.compare(img, hi + seg_dn, cv2.CMP_GT)
+    thr = np.minimum(np.rint(bg + f32(seg_dn)), np.iinfo(img.dtype).max).astype(img.dtype)
+    return cv2.compare(img, cv2.resize(thr, (w, h), interpolation=cv2.INTER_LINEAR), cv2.CMP_GT)
+
+
+@dataclass(frozen=True)
+class _Contours:
+    """Per contour (C): box (C, 4) inclusive, pixel area, polygon area, centroid (C, 2),
+    polygon moments (C, 3) uu uv vv, integer box centre (C, 2) and reach: the farthest
+    contour pixel from the box centre, px, rounded up."""
+
+    box: NDArray[np.intp]
+    area_px: Array
+    poly_area: Array
+    centre: Array
+    mu: Array
+    box_centre: NDArray[np.intp]
+    reach: NDArray[np.intp]
+
+
+def _contours(mask: NDArray[np.uint8]) -> _Contours:
+    """Boxes, areas and polygon moments of the external contours of ``mask``, vectorised."""
+    found, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    if not found:
+        z2, z = np.zeros((0, 2), np.intp), np.zeros(0)
+        return _Contours(np.zeros((0, 4), np.intp), z, z, z2 * 1.0, np.zeros((0, 3)), z2, z2[:, 0])
+    lengths = np.fromiter(map(len, found), dtype=np.intp, count=len(found))
+    pts = np.concatenate(found).reshape(-1, 2)
+    starts = np.cumsum(lengths) - lengths
+    box = np.concatenate([np.minimum.reduceat(pts, starts), np.maximum.reduceat(pts, starts)], axis=1).astype(np.intp)
+    # Green's theorem over each closed polygon, relative to its first vertex; rows x, y, x', y'
+    # (x' the next vertex) kept contiguous, since numpy is slow along short axes
+    xy = (pts - np.repeat(pts[starts], lengths, axis=0)).T.astype(f64, order="C")
+    nxt = np.arange(1, pts.shape[0] + 1)
+    nxt[starts + lengths - 1] = starts
+    (x, y), (x1, y1) = xy, xy[:, nxt]
+    cross = x * y1 - x1 * y
+    sx, sy = x + x1, y + y1
+    terms = np.stack([cross, np.maximum(np.abs(x1 - x), np.abs(y1 - y)), sx, sy,
+                      x * x + x * x1 + x1 * x1, y * y + y * y1 + y1 * y1, sx * sy + x * y + x1 * y1])
+    terms[2:] *= cross
+    sums = np.add.reduceat(terms, starts, axis=1)  # 2A, boundary steps, 6A c, 12A m2, 24A m11
+    a2 = sums[0]
+    flat = np.abs(a2) < 0.5  # single pixels and lines (a lattice polygon has |2A| >= 1)
+    a2s = np.where(flat, 1.0, a2)
+    first = pts[starts].astype(f64)
+    cx = np.where(flat, 0.5 * (box[:, 0] + box[:, 2]) - first[:, 0], sums[2] / (3.0 * a2s))
+    cy = np.where(flat, 0.5 * (box[:, 1] + box[:, 3]) - first[:, 1], sums[3] / (3.0 * a2s))
+    mu = np.stack([sums[4] / (6 * a2s) - cx * cx, sums[6] / (12 * a2s) - cx * cy, sums[5] / (6 * a2s) - cy * cy], 1)
+    mu[flat] = 0.0
+    box_centre = (box[:, :2] + box[:, 2:]) // 2
+    d = (pts - np.repeat(box_centre, lengths, axis=0)).T.astype(f64, order="C")
+    reach = np.ceil(np.sqrt(np.maximum.reduceat(d[0] * d[0] + d[1] * d[1], starts))).astype(np.intp)
+    # Pick's theorem: pixels = polygon area + boundary pixels / 2 + 1
+    return _Contours(box, 0.5 * np.abs(a2) + 0.5 * sums[1] + 1.0, 0.5 * np.abs(a2), np.stack([cx, cy], 1) + first,
+                     mu, box_centre, reach)
+
+
+def _axes(mu: Array) -> tuple[Array, Array, Array]:
+    """Semi-axes a >= b of the uniform ellipse with second moments ``mu`` (n, 3), and its angle."""
+    uu, uv, vv = mu.T
+    half_tr, root = 0.5 * (uu + vv), np.sqrt(0.25 * (uu - vv) ** 2 + uv * uv)
+    return 2 * np.sqrt(half_tr + root), 2 * np.sqrt(np.maximum(half_tr - root, 0)), 0.5 * np.arctan2(2 * uv, uu - vv)
+
+
+def _neighbours(ct: _Contours, host: NDArray[np.bool_], disk_like: NDArray[np.bool_],
+                r_px: float) -> tuple[NDArray[np.intp], Array]:
+    """Per blob: the ``host`` (disk candidate) whose coded ring it is a piece of, or -1, and
+    the distance from its box centre to the nearest thresholded pixel of another blob.
+
+    Distances to a host are measured in its own ellipse (rho = 1 on its edge),
+    so the rules hold in oblique views. A disk-like piece (a short arc) lies
+    wholly between RING_INNER and RING_OUTER, its ends from its moments, with
+    a pixel's slack for the threshold; any other blob within RING_OUTER is a
+    longer arc. From a short arc the real disk is far too large to lie in the
+    arc's annulus, so a disk is never a piece of its own ring; a claimed host
+    claims nothing. A ring comes nearest at its inner edge, RING_INNER disk
+    radii less the threshold's growth, taken as 2 px on disk and ring (so the
+    estimate errs towards masking); other blobs at their distance less their reach.
+    """
+    n = ct.centre.shape[0]
+    host_of, near = np.full(n, -1, dtype=np.intp), np.full(n, np.inf)
+    if n < 2:
+        return host_of, near
+    pairs = cKDTree(ct.centre).query_pairs(r_px, output_type="ndarray")
+    i, j = np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]])
+    duv = ct.centre[j] - ct.centre[i]
+    d = np.sqrt((duv * duv).sum(axis=1)) + 1e-9
+    (ex, ey), mi, mj = (duv / d[:, None]).T, ct.mu[i], ct.mu[j]
+    det = np.maximum(mi[:, 0] * mi[:, 2] - mi[:, 1] ** 2, 1e-12)
+    # rho per px along e in the host's frame, and the piece's moment half-extent towards the host
+    per_px = np.sqrt(np.maximum(mi[:, 2] * ex * ex - 2 * mi[:, 1] * ex * ey + mi[:, 0] * ey * ey, 0) / (4 * det))
+    half = 2 * np.sqrt(np.maximum(mj[:, 0] * ex * ex + 2 * mj[:, 1] * ex * ey + mj[:, 2] * ey * ey, 0))
+    rho = d * per_px
+    short_arc = (rho > RING_INNER - 0.6) & ((d - half) * per_px > 1.0) & ((d + half) * per_px < RING_OUTER + 0.4)
+    claim = host[i] & np.where(disk_like[j], short_arc, rho < RING_OUTER + 0.5)
+    claimed = np.zeros(n, dtype=bool)
+    claimed[j[claim]] = True
+    claim &= ~claimed[i]
+    host_of[j[claim]] = i[claim]
+    bd = ct.centre[j] - ct.box_centre[i]
+    approach = np.where(host_of[j] == i, RING_INNER * (1.0 / np.maximum(per_px, 1e-9) + 0.5) - 6.0,
+                        np.sqrt((bd * bd).sum(axis=1)) - ct.reach[j] - 0.5)
+    np.minimum.at(near, i, approach)
+    return host_of, near
+
+
+_POWERS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2), (3, 0), (2, 1), (1, 2), (0, 3),
+           (4, 0), (3, 1), (2, 2), (1, 3), (0, 4))
+
+
+@dataclass(frozen=True)
+class _Tables:
+    """Constants of an s x s window array, flattened row by row, for the circle of radius h + 1/2
+    (h = s // 2): ``basis`` (15, s*s) the monomials du^p dv^q of _POWERS; ``mask`` (s*s,) 1 inside;
+    ``sums`` (7,) over the circle of du^0, du^2, du^4, du^2 dv^2, du^6, du^4 dv^2, du^8; ``rim``
+    (K,) the pixels with h - 1 < distance <= h + 1/2, ``rim_g`` (K, 3) their 1, du, dv, ``rim_uu``
+    their sum of du^2; ``nine`` the flat offsets of a 3 x 3 neighbourhood."""
+
+    basis: NDArray[np.float32]
+    mask: NDArray[np.float32]
+    sums: Array
+    rim: NDArray[np.intp]
+    rim_g: NDArray[np.float32]
+    rim_uu: float
+    nine: NDArray[np.intp]
+
+
+@lru_cache(maxsize=64)
+def _tables(s: int) -> _Tables:
+    h = s // 2
+    d = np.arange(-h, h + 1, dtype=f64)
+    du, dv = np.tile(d, s), np.repeat(d, s)
+    inside = du * du + dv * dv <= (h + 0.5) ** 2
+    rim = np.flatnonzero(inside & (du * du + dv * dv > (h - 1.0) ** 2))
+    c = inside * 1.0
+    sums = np.array([(c * du**p * dv**q).sum() for p, q in ((0, 0), (2, 0), (4, 0), (2, 2), (6, 0), (4, 2), (8, 0))])
+    t = _Tables(basis=np.stack([du**p * dv**q for p, q in _POWERS]).astype(f32), mask=c.astype(f32), sums=sums,
+                rim=rim, rim_g=np.stack([np.ones(rim.size), du[rim], dv[rim]], axis=1).astype(f32),
+                rim_uu=float((du[rim] ** 2).sum()), nine=np.array([-s - 1, -s, -s + 1, -1, 0, 1, s - 1, s, s + 1]))
+    for a in (t.basis, t.mask, t.sums, t.rim, t.rim_g, t.nine):
+        a.setflags(write=False)
+    return t
+
+
+@dataclass(frozen=True)
+class _Measured:
+    """Per window (n), see :func:`_measure`: centre (n, 2) px, ellipse (n, 5), flux S, plateau
+    level and peak and background (DN), background noise variance sb2 (rim plane residual), shot
+    noise per DN of level, centroid variance from background noise and per unit shot coefficient,
+    the fill's mismatch (sum |blob - ellipse model| / level) and what background noise adds to it
+    (px^2), the third central moments' squared norm, the kurtosis along the major axis and the
+    blurred ellipse's, the disk's share of the minor-axis variance (the rest is blur), the
+    variance along the major axis, the window's sums (n, 7), saturated pixels, rim crossed."""
+
+    uv: Array
+    ellipse: Array
+    flux: Array
+    level: Array
+    peak: Array
+    background: Array
+    sb2: Array
+    k_shot: Array
+    var_base: Array
+    var_per_k: Array
+    mismatch: Array
+    noise_bg: Array
+    m3sq: Array
+    kurt: Array
+    kurt_model: Array
+    flat_top: Array
+    var_major: Array
+    sums: Array
+    n_sat: NDArray[np.intp]
+    edge: NDArray[np.bool_]
+
+
+def _rim_plane(B: NDArray[np.float32], G: NDArray[np.float32], ruu: float,
+               seg: np.float32) -> tuple[Array, Array, NDArray[np.bool_], Array, Array]:
+    """Plane (n, 3: offset, du and dv slopes) through the rim values ``B`` (n, K) that are not
+    bright, its residual variance, whether two or more rim pixels are bright (one may be noise),
+    and the used rim's pixel count and sum of du^2. A rim with nothing bright on it is symmetric,
+    so its normal equations are diagonal; only rims crossed by something bright need a solve."""
+    n, k = B.shape
+    s1 = (B @ G).astype(f64)  # sums of B, B du, B dv
+    bright = B > (s1[:, 0] / k).astype(f32)[:, None] + seg
+    crossed, coef = bright.any(axis=1).nonzero()[0], s1 / np.array([k, ruu, ruu])
+    rss = (B * B).sum(axis=1).astype(f64) - (coef * s1).sum(axis=1)
+    m_used, ruu_used, edge = np.full(n, float(k)), np.full(n, ruu), np.zeros(n, dtype=bool)
+    if crossed.size:  # the level of what is not bright, then a plane through what is below it + seg
+        Bc, Gc = B[crossed].astype(f64), G.astype(f64)
+        keep = ~bright[crossed]
+        thr = (Bc * keep).sum(1) / np.maximum(keep.sum(1), 1) + seg
+        dark = (Bc <= thr[:, None]).astype(f64)
+        edge[crossed] = dark.sum(axis=1) <= k - 2
+        # normal equations: sums over the dark rim of the products 1, u, v, uu, uv, vv
+        w = dark @ (Gc[:, [0, 0, 0, 1, 1, 2]] * Gc[:, [0, 1, 2, 1, 2, 2]])
+        N = w[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
+        rhs = (dark * Bc) @ Gc
+        few = N[:, 0, 0] < 6
+        N[few], edge[crossed[few]] = np.eye(3), True
+        c = np.linalg.solve(N, rhs[:, :, None])[:, :, 0]
+        coef[crossed], rss[crossed] = c, (dark * Bc * Bc).sum(1) - (c * rhs).sum(1)
+        m_used[crossed], ruu_used[crossed] = N[:, 0, 0], 0.5 * (N[:, 1, 1] + N[:, 2, 2])
+    return coef, np.maximum(rss, 0.0) / np.maximum(m_used - 3.0, 1.0), edge, m_used, ruu_used
+
+
+def _mask_others(P: NDArray[np.float32], own: Array, T: _Tables, s: int, seg: np.float32) -> None:
+    """Set other blobs in crowded windows to the background, in place. ``own`` (n, 5): rows
+    (x0, y0, Q_uu, Q_uv, Q_vv), the blob's own region ``x' Q x <= 1`` about (x0, y0) from the
+    window centre, NaN where nothing else is near. Bright pixels outside it and a 3 px band
+    around them (their blur tail) take the rim's lower quartile (the rim may cross the other)."""
+    crowd = np.isfinite(own[:, 0]).nonzero()[0]
+    if crowd.size == 0:
+        return
+    Pc, rim = P[crowd], P[crowd][:, T.rim]
+    level0 = np.partition(rim, rim.shape[1] // 4, axis=1)[:, rim.shape[1] // 4]
+    x0, y0, qa, qb, qc = own[crowd].T
+    q = np.stack([qa * x0 * x0 + 2 * qb * x0 * y0 + qc * y0 * y0, -2 * (qa * x0 + qb * y0),
+                  -2 * (qb * x0 + qc * y0), qa, 2 * qb, qc], axis=1).astype(f32)
+    outside = (q @ T.basis[:6]) > 1
+    # a 7 x 7 dilation of the windows stacked one above the other, 3 empty rows between them
+    grown = np.zeros((crowd.size, s + 3, s), dtype=np.uint8)
+    grown[:, :s] = (outside & (Pc > (level0 + seg)[:, None])).reshape(-1, s, s)
+    grown = cv2.dilate(grown.reshape(-1, s), np.ones((7, 7), np.uint8)).reshape(-1, s + 3, s)[:, :s] > 0
+    P[crowd] = np.where(grown.reshape(-1, s * s) & outside, level0[:, None], Pc)
+
+
+def _measure(img: NDArray[np.generic], u0: NDArray[np.intp], v0: NDArray[np.intp], s: int,
+             seg_dn: float, full_dn: float, own: Array | None = None) -> _Measured:
+    """Measure the blob in the circle of radius ``s // 2 + 1/2`` about the centre of each
+    s x s array at ``(u0, v0)`` (inside the image); ``own``: see :func:`_mask_others`.
+
+    Precision: the centre is linear in the pixel values, the rim pixels
+    counting twice (in the sums and through the plane fitted to them). With
+    the circle's ``A0`` pixels and ``A2 = sum(du^2)``, a rim of ``m`` pixels
+    with ``R = sum_rim(du^2)``, the flux ``S``, the background noise ``sb``
+    (rms residual of the rim plane) and the shot-noise variance ``k`` per DN of
+    signal, the variance of ``u_c`` (relative to the window centre) is::
+
+        [sb^2 (A2^2 / R - A2 + u_c^2 (A0^2 / m - A0)) + k S mu_uu] / S^2
+
+    likewise along v; ``sigma_px`` is the square root of their mean.
+    """
+    n, h, ss, T, seg = u0.size, s // 2, s * s, _tables(s), f32(seg_dn)
+    raw = sliding_window_view(img, (s, s))[v0, u0].reshape(n, ss)  # a copy, in the image's dtype
+    peak, n_sat = raw.max(axis=1).astype(f64), np.zeros(n, dtype=np.intp)
+    hot = (peak >= full_dn).nonzero()[0]
+    if hot.size:
+        n_sat[hot] = ((raw[hot] >= full_dn) & (T.mask > 0)).sum(axis=1)
+    P = raw.astype(f32)
+    if own is not None:
+        _mask_others(P, own, T, s, seg)
+    coef, sb2, edge, m, ruu = _rim_plane(P[:, T.rim], T.rim_g, T.rim_uu, seg)
+    b0, b1, b2 = coef.T
+    P -= b0.astype(f32)[:, None]
+    P *= T.mask
+    mom = (P @ T.basis.T).astype(f64)
+    a0, a2, a4, a22 = T.sums[:4]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # raw moments about the window centre, over the flux; the slopes' odd moments removed
+        S = mom[:, 0]
+        mom[:, 1:3] -= coef[:, 1:] * a2
+        mom[:, 6:10] -= np.stack([b1 * a4, b2 * a22, b1 * a22, b2 * a4], axis=1)
+        r = mom[:, 1:] / S[:, None]
+        uc, vc, m20, m11, m02, m30, m21, m12, m03 = r[:, :9].T
+        mu_uu, mu_uv, mu_vv = m20 - uc * uc, m11 - uc * vc, m02 - vc * vc
+        finite = np.isfinite(uc) & np.isfinite(vc)
+        cuv = np.rint(np.where(finite[:, None], r[:, :2], 0.0)).clip(1 - h, h - 1).astype(np.intp) + h
+        core = P.take((np.arange(n) * ss + cuv[:, 1] * s + cuv[:, 0])[:, None] + T.nine).astype(f64)
+        slope_c, c1 = b1 * uc + b2 * vc, core.sum(1)
+        level, core_var = c1 / 9.0 - slope_c, ((core * core).sum(1) - c1 * c1 / 9.0) / 8.0
+        # the disk's edge: second moments less the blur variance
+        half_tr, root = 0.5 * (mu_uu + mu_vv), np.sqrt(0.25 * (mu_uu - mu_vv) ** 2 + mu_uv * mu_uv)
+        dq = S / (4.0 * np.pi * level)  # a b / 4
+        blur = np.fmax(np.fmin(half_tr - np.sqrt(root * root + dq * dq), 0.9 * (half_tr - root)), 0.0)
+        a_ax, b_ax = 2.0 * np.sqrt(half_tr + root - blur), 2.0 * np.sqrt(half_tr - root - blur)
+        ang = 0.5 * np.arctan2(2.0 * mu_uv, mu_uu - mu_vv)
+        good = finite & (S > 0) & (level > 0) & (b_ax > 0)
+        # third central moments (zero for a centrally symmetric blob), as complex moments:
+        # |mu3|^2 = (|E[z^3]|^2 + 3 |E[z^2 z*]|^2) / 4, z = x + i y about the centroid
+        z, z2, zz = uc + 1j * vc, (m20 - m02) + 2j * m11, m20 + m02  # about the window centre
+        a3 = (m30 - 3 * m12) + 1j * (3 * m21 - m03) - 3 * z * z2 + 2 * z**3
+        b3 = (m30 + m12) + 1j * (m21 + m03) - 2 * z * zz - z.conj() * z2 + 2 * z * z * z.conj()
+        m3sq = 0.25 * (np.abs(a3) ** 2 + 3 * np.abs(b3) ** 2)
+        # fourth central moment along the major axis, from the moments E[p^k] along it
+        c, sn = np.cos(ang), np.sin(ang)
+        cc, cs, ss2 = c * c, c * sn, sn * sn
+        p0, e2 = c * uc + sn * vc, cc * m20 + 2 * cs * m11 + ss2 * m02
+        e3 = c * cc * m30 + 3 * cc * sn * m21 + 3 * c * ss2 * m12 + sn * ss2 * m03
+        e4 = (cc * cc * r[:, 9] + 4 * cc * cs * r[:, 10] + 6 * cc * ss2 * r[:, 11] + 4 * cs * ss2 * r[:, 12]
+              + ss2 * ss2 * r[:, 13])
+        var_major, qa4 = e2 - p0 * p0, a_ax**2 / 4.0
+        kurt = (e4 - 4 * p0 * e3 + 6 * p0 * p0 * e2 - 3 * p0**4) / (var_major * var_major)
+        kurt_model = (2 * qa4 * qa4 + 6.0 * blur * qa4 + 3.0 * blur * blur) / (qa4 + blur) ** 2
+        # fill: the ellipse drawn as clip(level / 2 + k (1 - rho^2), 0, level), rho = 1 on its
+        # edge, a ramp of the blur's width; rho^2 is quadratic in (du, dv): a product with the basis
+        g_uu, g_vv = mu_uu - blur, mu_vv - blur
+        det4 = 4.0 * (g_uu * g_vv - mu_uv * mu_uv)
+        k = np.where(good, 0.5 * level * np.sqrt(a_ax * b_ax) / np.fmin(np.fmax(np.sqrt(2.0 * np.pi * blur), 0.5), 4.0),
+                     0.0) / det4
+        qa, qb, qc = k * g_vv, -k * mu_uv, k * g_uu
+        coef_m = np.stack([np.where(good, 0.5 * level, 0.0) + k * det4 - qa * uc * uc - 2 * qb * uc * vc - qc * vc * vc,
+                           2 * (qa * uc + qb * vc), 2 * (qb * uc + qc * vc), -qa, -2 * qb, -qc], axis=1)
+    coef_m[~good] = 0.0
+    model = coef_m.astype(f32) @ T.basis[:6]
+    np.minimum(np.maximum(model, 0, out=model), np.where(good, level, 0.0).astype(f32)[:, None], out=model)
+    model -= P  # P is zero outside the circle; so is the model of a blob inside it
+    mismatch = np.abs(model, out=model).sum(axis=1, dtype=f64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        area, uv = S / level, np.stack([uc + (u0 + h), vc + (v0 + h)], axis=1)
+        var_base = 0.5 * sb2 * (2.0 * (a2 * a2 / ruu - a2) + (uc * uc + vc * vc) * (a0 * a0 / m - a0)) / (S * S)
+        return _Measured(
+            uv=uv, ellipse=np.column_stack([uv, a_ax, b_ax, ang]), flux=S, level=level, peak=peak,
+            background=b0 + slope_c, sb2=sb2, k_shot=np.maximum(core_var - sb2, 0.0) / level,
+            var_base=var_base, var_per_k=half_tr / S, mismatch=np.where(good, mismatch / level, np.inf),
+            noise_bg=np.sqrt(2.0 / np.pi * sb2) * np.maximum(a0 - area, 0.0) / level, m3sq=m3sq,
+            kurt=kurt, kurt_model=kurt_model, flat_top=1.0 - blur / (half_tr - root), var_major=var_major,
+            sums=np.broadcast_to(T.sums, (n, 7)), n_sat=n_sat, edge=edge)
+
+
+def _measure_all(img: NDArray[np.generic], cu: NDArray[np.intp], cv: NDArray[np.intp],
+                 radius: NDArray[np.intp], seg_dn: float, full_dn: float,
+                 own: Array | None) -> tuple[_Measured, NDArray[np.bool_]]:
+    """Measure circular windows of ``radius + 1/2`` px about (cu, cv), one batch per radius.
+
+    Returns the measurements in input order and whether each window fits in the image.
+    """
+    height, width = img.shape
+    placed = (cu >= radius) & (cu + radius < width) & (cv >= radius) & (cv + radius < height) & (radius >= 2)
+    parts = [((placed & (radius == h)).nonzero()[0], h) for h in np.unique(radius[placed])]
+    parts = [(sel, _measure(img, cu[sel] - h, cv[sel] - h, 2 * int(h) + 1, seg_dn, full_dn,
+                            None if own is None else own[sel])) for sel, h in parts]
+    if len(parts) == 1 and parts[0][0].size == cu.size:
+        return parts[0][1], placed
+    out = {}
+    for f in fields(_Measured):  # unplaced windows: zeros, and a crossed rim
+        shape = {"uv": (2,), "ellipse": (5,), "sums": (7,)}.get(f.name, ())
+        make = np.ones if f.name == "edge" else np.zeros
+        out[f.name] = make((cu.size, *shape), dtype={"edge": bool, "n_sat": np.intp}.get(f.name, f64))
+        for sel, meas in parts:
+            out[f.name][sel] = getattr(meas, f.name)
+    return _Measured(**out), placed
+
+
+def _assess(meas: _Measured, usable: NDArray[np.bool_], settings: DetectSettings,
+            contrast_dn: float) -> tuple[NDArray[np.intp], Array, Array]:
+    """Reason (-1: accepted; rim contact not included), sigma_px and fill of each window.
+
+    The shot-noise coefficient ``k`` is the median plateau variance per DN of the usable blobs
+    that pass the level tests (8 degrees of freedom each: the median is 0.918 of the mean). The
+    shape statistics against their noise (through the window's sums, the blob as a uniform disk
+    for shot noise): asymmetry ``|mu3| / (2 tr mu)`` px (a one-sided defect's shift of the
+    centre, ``|mu3|^2 = k30^2 + 3 k21^2 + 3 k12^2 + k03^2``); kurtosis along the major axis;
+    fill ``(A + Ae - m) / (A + Ae + m)`` of the blob's area ``A``, the ellipse's ``Ae`` and their
+    mismatch ``m`` less what noise adds to it (``sqrt(2 / pi)`` sigma per pixel).
+    """
+    a, b = meas.ellipse[:, 2], meas.ellipse[:, 3]
+    S, level, sb2, sums = meas.flux, meas.level, meas.sb2, meas.sums
+    with np.errstate(divide="ignore", invalid="ignore"):
+        area = S / level
+        levels = np.select(
+            [meas.n_sat > MAX_SATURATED_PX, ~((meas.peak - meas.background >= contrast_dn) & (level > 0)),
+             ~(area >= settings.min_area_px), ~(area <= settings.max_area_px)],
+            [_SATURATED, _LOW_CONTRAST, _TOO_SMALL, _TOO_BIG], -1)
+        plateau = (levels < 0) & usable & ~meas.edge & (b >= MIN_PLATEAU_B_PX)
+        k = float(np.median(meas.k_shot[plateau])) / 0.918 if plateau.any() else 0.0
+        sigma = np.sqrt(meas.var_base + k * meas.var_per_k)
+        tr, area_e = 2.0 * meas.var_per_k * S, np.pi * a * b
+        mis = np.maximum(meas.mismatch - meas.noise_bg - np.sqrt(2.0 / np.pi * (sb2 + k * level)) * area / level, 0)
+        fill = np.nan_to_num((area + area_e - mis) / (area + area_e + mis))
+        # pixel noise through the centred monomials (c0..c8 the window's sums, m the variance per axis)
+        c0, c2, c4, c22, c6, c42, c8 = sums.T
+        m = 0.5 * tr
+        bg3 = 2 * (c6 - 6 * m * c4 + 9 * m * m * c2) + 6 * (c42 - 2 * m * c22 + m * m * c2)
+        asym_noise = np.sqrt(sb2 * bg3 + k * S * (4.0 * m) ** 3 / 8.0) / S / (2.0 * tr)
+        m2, kap = meas.var_major, meas.kurt_model
+        al, be = 2 * kap * m2, kap * m2 * m2  # kurtosis' monomial: x^4 - al x^2 + be
+        bg4 = c8 - 2 * al * c6 + (al * al + 2 * be) * c4 - 2 * al * be * c2 + be * be * c0
+        q = a * a / 4.0  # moments of the disk's profile along its major axis: q, 2 q^2, 5 q^3, 14 q^4
+        shot4 = 14 * q**4 - 2 * al * 5 * q**3 + (al * al + 2 * be) * 2 * q * q - 2 * al * be * q + be * be
+        kurt_noise = np.sqrt(sb2 * bg4 + k * S * np.maximum(shot4, 0.0)) / (S * m2 * m2)
+        shape_ok = ((b * settings.max_aspect >= a) & (fill >= settings.min_fill) & (meas.flat_top >= MIN_FLAT_TOP)
+                    & (np.sqrt(meas.m3sq) / (2.0 * tr) <= SHAPE_SIGMA[0] * asym_noise + SHAPE_FLOOR[0])
+                    & (np.abs(meas.kurt - meas.kurt_model) <= SHAPE_SIGMA[1] * kurt_noise + SHAPE_FLOOR[1])
+                    & np.isfinite(meas.uv).all(axis=1))
+    return np.where(levels >= 0, levels, np.where(shape_ok, -1, _MISSHAPEN)), sigma, fill
+
+
+def _blobs(meas: _Measured, index: NDArray[np.intp], sigma: Array, fill: Array) -> Blobs:
+    return Blobs(uv=meas.uv[index], ellipse=meas.ellipse[index], sigma_px=sigma[index],
+                 area_px=meas.flux[index] / meas.level[index], peak_dn=meas.peak[index],
+                 background_dn=meas.background[index], fill=fill[index])
+
+
+def _windows(ct: _Contours, todo: NDArray[np.intp], near: Array, shape: tuple[int, int],
+             window_px: int) -> tuple[NDArray[np.intp], Array | None, NDArray[np.bool_]]:
+    """Window radius of each blob to measure, its own region for :func:`_mask_others` where
+    another blob reaches into the window (its thresholded ellipse + 1.5 px), and whether the image
+    border limits the window. A window holds the thresholded blob plus WINDOW_MARGIN_PX; the
+    windows within one step of WINDOW_RADII share the largest radius among them."""
+    need = ct.reach[todo] + WINDOW_MARGIN_PX
+    if window_px > 0:
+        radius = np.full(todo.size, window_px // 2, dtype=np.intp)
+    else:
+        step, top = np.minimum(np.searchsorted(WINDOW_RADII, need), len(WINDOW_RADII) - 1), np.zeros(99, np.intp)
+        np.maximum.at(top, step, need)
+        radius = np.maximum(top[step], need)
+    cu, cv = ct.box_centre[todo].T
+    radius = np.minimum(radius, np.minimum(np.minimum(cu, cv), np.minimum(shape[1] - 1 - cu, shape[0] - 1 - cv)))
+    crowded, own = radius + WINDOW_MARGIN_PX + 0.5 > near[todo], None
+    if crowded.any():
+        own, k = np.full((todo.size, 5), np.nan), todo[crowded]
+        mu = ct.mu[k]
+        grow = (1 + 1.5 / np.maximum(_axes(mu)[1], 0.5)) ** 2
+        det4 = 4 * np.maximum(mu[:, 0] * mu[:, 2] - mu[:, 1] ** 2, 1e-12) * grow
+        own[crowded, :2] = ct.centre[k] - ct.box_centre[k]
+        own[crowded, 2:] = np.stack([mu[:, 2], -mu[:, 1], mu[:, 0]], axis=1) / det4[:, None]
+    return radius, own, radius < need
+
+
+def detect_blobs(image: NDArray[np.generic],
+                 settings: DetectSettings = DetectSettings()) -> tuple[Blobs, Rejections]:
+    """Find and measure every bright target (disk) in a full frame.
+
+    Parameters
+    ----------
+    image : (H, W) uint8 or uint16
+    settings : DetectSettings
+
+    Returns
+    -------
+    Blobs
+        The measured disks.
+    Rejections
+        Blobs found but not measured: saturated, cut off by the image border, merged or misshapen
+        (notched, occluded), too small, too big, too faint, or a piece of a coded target's ring.
+
+    Raises
+    ------
+    SolveError
+        ``bad_image`` if the image is not a 2-D uint8/uint16 array.
+    """
+    img = _check_image(image)
+    (height, width), (full, contrast, seg) = img.shape, _levels(img, settings)
+    ct = _contours(_foreground(img, seg))
+    box, bp, (a, b, _) = ct.box, settings.border_px, _axes(ct.mu)
+    cut = (box[:, 0] < bp) | (box[:, 1] < bp) | (box[:, 2] > width - 1 - bp) | (box[:, 3] > height - 1 - bp)
+    small, big = ct.area_px < settings.min_area_px, ct.area_px > settings.max_area_px
+    long = ~(b * settings.max_aspect >= a)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        disk_like = ~long & (ct.poly_area >= MIN_POLYGON_FILL * np.pi * a * b)
+    host = disk_like & ~small & ~big  # a disk cut by the border still marks its ring
+    r_px = 0.0
+    if host.any():  # ring pieces lie within RING_OUTER; windows may reach 1.25 times their need
+        r_px = max((RING_OUTER + 0.6) * float(a[host].max()),
+                   1.25 * float(ct.reach[host].max()) + 6.0 + float(ct.reach.max()))
+    host_of, near = _neighbours(ct, host, disk_like, r_px)
+    reason = np.select([cut, small, big, (host_of >= 0), long], [_CUT_OFF, _TOO_SMALL, _TOO_BIG, _RING, _MISSHAPEN], -1)
+
+    todo = (reason < 0).nonzero()[0]
+    radius, own, limited = _windows(ct, todo, near, img.shape, settings.window_px)
+    meas, placed = _measure_all(img, ct.box_centre[todo, 0], ct.box_centre[todo, 1], radius, seg, full, own)
+    wr, sigma, fill = _assess(meas, placed, settings, contrast)
+    # a blob reaching the window's rim is bigger than its window, or cut off where the border limits it
+    wr = np.where(meas.edge | ~placed, np.where(limited, _CUT_OFF, np.where(wr < 0, _TOO_BIG, wr)), wr)
+    reason[todo], centre = wr, ct.centre.copy()
+    centre[todo] = np.where(np.isfinite(meas.uv), meas.uv, centre[todo])
+    rej = (reason >= 0).nonzero()[0]
+    return _blobs(meas, (wr < 0).nonzero()[0], sigma, fill), Rejections(reason[rej], box[rej], centre[rej])
+
+
+def measure_windows(image: NDArray[np.generic], uv_predicted: NDArray[np.float64],
+                    half_size_px: int | NDArray[np.intp],
+                    settings: DetectSettings = DetectSettings()) -> tuple[Blobs, NDArray[np.intp]]:
+    """Measure the one bright disk in a small window around each predicted position.
+
+    The measurement of :func:`detect_blobs` (a window is the circle of radius
+    ``half_size_px + 1/2`` about the rounded prediction), vectorised over windows.
+
+    Parameters
+    ----------
+    image : (H, W) uint8 or uint16
+    uv_predicted : (M, 2) float, px
+    half_size_px : int or (M,) int
+        The disk plus 2 px and the prediction's error must fit in it; for a coded target it must
+        stay inside the ring's gap (below about twice the disk radius less 3 px).
+    settings : DetectSettings
+        ``window_px`` and ``border_px`` are not used.
+
+    Returns
+    -------
+    Blobs
+        The measured disks.
+    (M,) int
+        Per window, the index of its disk in the blobs, or -1 when it holds no bright blob, when
+        the blob touches the window's edge (the prediction was off: tell the caller), when the
+        window leaves the image, or when the blob is saturated, too faint, too small or big, or
+        misshapen (merged, notched, occluded).
+    """
+    img = _check_image(image)
+    full, contrast, seg = _levels(img, settings)
+    uv = np.asarray(uv_predicted, dtype=f64).reshape(-1, 2)
+    half = np.broadcast_to(np.asarray(half_size_px, dtype=np.intp), (uv.shape[0],))
+    if np.any(half < 2):
+        raise ValueError("half_size_px must be at least 2")
+    finite = np.isfinite(uv).all(axis=1)
+    c = np.rint(np.where(finite[:, None], uv, -1e6)).astype(np.intp)
+    meas, placed = _measure_all(img, c[:, 0], c[:, 1], np.where(finite, half, 0), seg, full, None)
+    wr, sigma, fill = _assess(meas, placed, settings, contrast)
+    ok = ((wr < 0) & ~meas.edge & placed).nonzero()[0]
+    found = np.full(uv.shape[0], -1, dtype=np.intp)
+    found[ok] = np.arange(ok.size)
+    return _blobs(meas, ok, sigma, fill), found

@@ -1,0 +1,129 @@
+"""The ``posecell`` console script as a user runs it: real files, real process, exit codes, stderr."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from service import formats
+from service.core.frames import apply_T, inv_T, make_T
+from service.sim.scene import reference_camera, reference_field, reference_pose
+
+POSECELL = [str(Path(sys.executable).with_name("posecell"))]
+
+
+def run(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*POSECELL, *args], capture_output=True, text=True, timeout=120)
+
+
+@pytest.fixture
+def scene(tmp_path):
+    camera, field = reference_camera(), reference_field()
+    T = reference_pose(view_angle_deg=70.0, distance_mm=1000.0, roll_deg=15.0)
+    uv = camera.pixel_from_camera(apply_T(inv_T(T), field.xyz))
+    keep = camera.in_image(uv, 5.0)
+    formats.write_camera(tmp_path / "camera.json", camera)
+    formats.write_field(tmp_path / "field.json", field)
+    points = [{"id": i, "uv": list(p)} for i, p, k in zip(field.ids, uv, keep, strict=True) if k]
+    (tmp_path / "points.json").write_text(json.dumps(points))
+    return tmp_path, T, points
+
+
+def test_resect_prints_the_pose_of_design_section_4(scene):
+    d, T_true, points = scene
+    r = run("resect", "--camera", str(d / "camera.json"), "--field", str(d / "field.json"),
+            "--points", str(d / "points.json"))
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["ok"] is True
+    assert np.allclose(out["T_field_camera"], T_true, atol=1e-4)
+    assert out["n_coded"] + out["n_uncoded"] == len(points)
+    assert out["n_coded"] > 4
+    assert len(out["sigma_position_mm"]) == 3 and len(out["sigma_rotation_deg"]) == 3
+    assert out["rms_px"] < 1e-4
+    assert {t["id"] for t in out["targets"]} == {p["id"] for p in points}
+
+
+def test_resect_reports_and_rejects_a_gross_error(scene):
+    d, T_true, points = scene
+    points[3]["uv"][0] += 25.0
+    (d / "points.json").write_text(json.dumps(points))
+    r = run("resect", "--camera", str(d / "camera.json"), "--field", str(d / "field.json"),
+            "--points", str(d / "points.json"), "--sigma-px", "0.05")
+    out = json.loads(r.stdout)
+    assert out["rejected"] == [points[3]["id"]]
+    assert np.allclose(np.array(out["T_field_camera"])[:3, 3], T_true[:3, 3], atol=1e-3)
+
+
+def test_resect_with_too_few_points_fails_with_one_sentence(scene):
+    d, _, points = scene
+    (d / "few.json").write_text(json.dumps(points[:3]))
+    r = run("resect", "--camera", str(d / "camera.json"), "--field", str(d / "field.json"),
+            "--points", str(d / "few.json"))
+    assert r.returncode == 1
+    assert json.loads(r.stdout)["reason"] == "too_few_targets"
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    "setup, expected",
+    [
+        (lambda d: None, "no such file"),
+        (lambda d: (d / "missing.json").write_text("{not json"), "malformed JSON"),
+        (lambda d: (d / "missing.json").write_text('[{"id": "C1"}]'), "point #0"),
+        (lambda d: (d / "missing.json").write_text('[{"id": "nope", "uv": [1, 2]}]'), "not in the field"),
+    ],
+)
+def test_resect_bad_points_file_gives_a_clear_error(scene, setup, expected):
+    d, _, _ = scene
+    setup(d)
+    r = run("resect", "--camera", str(d / "camera.json"), "--field", str(d / "field.json"),
+            "--points", str(d / "missing.json"))
+    assert r.returncode == 2
+    assert expected in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_calibrate_handeye_recovers_X_and_Z_from_a_samples_file(tmp_path, rng):
+    X = make_T(Rotation.from_euler("xyz", [2, -3, 178], degrees=True).as_matrix(), [5.0, -40.0, 80.0])
+    Z = make_T(Rotation.from_euler("z", 30, degrees=True).as_matrix(), [900.0, -200.0, -400.0])
+    samples = []
+    for _ in range(12):
+        R = Rotation.from_rotvec(rng.normal(0, 0.35, 3)).as_matrix() @ np.diag([1.0, -1.0, -1.0])
+        T_base_flange = make_T(R, rng.normal([800, 0, 300], 100))
+        T_field_camera = inv_T(Z) @ T_base_flange @ X
+        samples.append({"T_base_flange": T_base_flange.tolist(), "T_field_camera": T_field_camera.tolist()})
+    (tmp_path / "samples.json").write_text(json.dumps(samples))
+    r = run("calibrate", "handeye", "--samples", str(tmp_path / "samples.json"), "-o", str(tmp_path / "he.json"))
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert np.allclose(out["T_flange_camera"], X, atol=1e-6)
+    assert np.allclose(out["T_base_field"], Z, atol=1e-5)
+    assert json.loads((tmp_path / "he.json").read_text())["T_flange_camera"] == out["T_flange_camera"]
+
+
+def test_calibrate_handeye_rejects_a_non_rigid_matrix(tmp_path):
+    bad = np.eye(4)
+    bad[0, 0] = 3.0
+    (tmp_path / "s.json").write_text(json.dumps([{"T_base_flange": bad.tolist(), "T_field_camera": np.eye(4).tolist()}]))
+    r = run("calibrate", "handeye", "--samples", str(tmp_path / "s.json"))
+    assert r.returncode == 2
+    assert "rotation" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_bench_accuracy_prints_both_paper_tables():
+    r = run("bench", "accuracy", "--trials", "20")
+    assert r.returncode == 0, r.stderr
+    assert "Table 3" in r.stdout and "Table 2" in r.stdout
+    assert r.stdout.count("| resection |") == 2 and r.stdout.count("| intersection |") == 2
+
+
+def test_unknown_verb_is_a_usage_error():
+    r = run("frobnicate")
+    assert r.returncode == 2 and "invalid choice" in r.stderr

@@ -1,0 +1,138 @@
+"""Frame -> identified targets -> pose, on rendered IR frames with known ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.core.frames import pose_difference
+from service.core.results import Failure, PoseResult, Reason
+from service.pipeline import FrameMeasurer, MeasureSettings
+from service.sim.render import RenderSettings, render_frame
+from service.sim.scene import reference_camera, reference_field, reference_pose
+
+
+@pytest.fixture(scope="module")
+def cell():
+    return reference_camera(), reference_field()
+
+
+def truth_uv(frame):
+    return dict(zip(frame.ids, frame.uv_true, strict=True))
+
+
+@pytest.mark.parametrize(
+    "view_angle_deg, distance_mm, roll_deg",
+    [(90.0, 1000.0, 0.0), (70.0, 900.0, 35.0), (60.0, 1100.0, -120.0), (80.0, 700.0, 200.0)],
+)
+def test_full_frame_identifies_every_target_without_mismatch(cell, view_angle_deg, distance_mm, roll_deg):
+    camera, field = cell
+    rng = np.random.default_rng(int(view_angle_deg * 7 + distance_mm))
+    T = reference_pose(view_angle_deg=view_angle_deg, distance_mm=distance_mm, roll_deg=roll_deg)
+    # exposure follows the distance, as an auto-exposure would, so that no target saturates
+    settings = RenderSettings(exposure_scale=0.75 * (distance_mm / 1000.0) ** 2)
+    frame = render_frame(camera, field, T, settings, rng)
+    outcome = FrameMeasurer(camera, field).measure(frame.image)
+    result = outcome.result
+    assert isinstance(result, PoseResult), result
+    truth = truth_uv(frame)
+    fully = dict(zip(frame.ids, frame.fully_visible, strict=True))
+    measured = {t.id: np.array(t.uv) for t in result.targets}
+    # no mismatches: every identified target sits where that very target is
+    err = np.array([np.linalg.norm(measured[i] - truth[i]) for i in measured])
+    assert err.max() < 0.3
+    # nearly every fully visible target is found
+    n_visible = sum(fully.values())
+    assert len(measured) >= 0.95 * n_visible
+    assert result.n_coded >= 0.9 * sum(1 for i in fully if i.startswith("C") and fully[i])
+    # the pose agrees with the truth within its own uncertainty (two-sided: the error is not zero either)
+    dt, _ = pose_difference(result.T_field_camera, T)
+    sigma = np.linalg.norm(result.sigma_position_mm)
+    assert dt < 5 * sigma
+    assert 0.003 < result.rms_px < 0.1
+
+
+def test_centroids_match_ground_truth_within_a_two_sided_band(cell):
+    camera, field = cell
+    T = reference_pose(view_angle_deg=75.0, distance_mm=950.0, roll_deg=10.0)
+    errors = []
+    for seed in range(3):
+        frame = render_frame(camera, field, T, RenderSettings(), np.random.default_rng(seed))
+        result = FrameMeasurer(camera, field).measure(frame.image).result
+        truth = truth_uv(frame)
+        errors += [np.array(t.uv) - truth[t.id] for t in result.targets]
+    errors = np.array(errors)
+    rms = np.sqrt(np.mean(errors**2))
+    bias = np.abs(errors.mean(axis=0))
+    # eccentricity-corrected centres against the true image of each target's centre
+    assert 0.005 < rms < 0.05, rms
+    assert np.all(bias < 0.01), bias
+
+
+def test_eccentricity_correction_removes_the_perspective_bias(cell):
+    camera, field = cell
+    T = reference_pose(view_angle_deg=55.0, distance_mm=650.0, roll_deg=30.0)
+    frame = render_frame(camera, field, T, RenderSettings(exposure_scale=0.3), None)
+    truth = truth_uv(frame)
+    rms = {}
+    for correct in (False, True):
+        result = FrameMeasurer(camera, field, MeasureSettings(correct_eccentricity=correct)).measure(frame.image).result
+        assert isinstance(result, PoseResult), result
+        e = np.array([np.array(t.uv) - truth[t.id] for t in result.targets])
+        rms[correct] = np.sqrt(np.mean(e**2))
+    assert rms[True] < 0.6 * rms[False]
+
+
+def test_roi_tracking_follows_a_motion_and_falls_back_when_targets_are_lost(cell):
+    camera, field = cell
+    rng = np.random.default_rng(5)
+    measurer = FrameMeasurer(camera, field)
+    modes, errors = [], []
+    for k in range(12):
+        t_s = k * 0.01
+        # a smooth sweep across the plate with a slow roll: ~4 px image motion per frame
+        T = reference_pose(view_angle_deg=80.0, distance_mm=1000.0, roll_deg=0.2 * k,
+                           look_at_mm=(-20.0 + 2.0 * k, 10.0, 0.0))
+        settings = RenderSettings(lit=(k != 6))  # frame 6: the ring light did not fire
+        frame = render_frame(camera, field, T, settings, rng)
+        outcome = measurer.measure(frame.image, t_s=t_s)
+        modes.append(outcome.mode)
+        if k == 6:
+            assert isinstance(outcome.result, Failure)
+            assert outcome.result.reason == Reason.too_few_targets
+            continue
+        assert isinstance(outcome.result, PoseResult), (k, outcome.result)
+        errors.append(pose_difference(outcome.result.T_field_camera, T)[0])
+    assert modes[0] == "full"
+    assert modes[1:6] == ["roi"] * 5          # tracking after the first frame
+    assert modes[7] == "full"                 # the history was lost with the dark frame
+    assert modes[8:] == ["roi"] * 4           # and tracking resumes
+    assert max(errors) < 0.2
+
+
+def test_roi_mode_falls_back_to_full_frame_after_a_jump(cell):
+    camera, field = cell
+    measurer = FrameMeasurer(camera, field)
+    T0 = reference_pose(view_angle_deg=85.0, distance_mm=1000.0)
+    T1 = reference_pose(view_angle_deg=85.0, distance_mm=1000.0, look_at_mm=(60.0, 0.0, 0.0))
+    for k, T in enumerate([T0, T0, T1]):
+        outcome = measurer.measure(render_frame(camera, field, T).image, t_s=0.01 * k)
+    assert outcome.mode == "full"
+    assert pose_difference(outcome.result.T_field_camera, T1)[0] < 0.1
+
+
+@pytest.mark.parametrize(
+    "make_image, reason",
+    [
+        (lambda: np.zeros((1030, 1300), np.uint8), Reason.too_few_targets),
+        (lambda: np.full((1030, 1300), 255, np.uint8), Reason.too_few_targets),
+        (lambda: np.zeros((10, 10, 3), np.float32), Reason.bad_image),
+    ],
+    ids=["black", "saturated", "not-a-grey-image"],
+)
+def test_unmeasurable_frames_are_failures_with_a_reason(cell, make_image, reason):
+    camera, field = cell
+    outcome = FrameMeasurer(camera, field).measure(make_image())
+    assert isinstance(outcome.result, Failure)
+    assert outcome.result.reason == reason
+    assert outcome.result.message
