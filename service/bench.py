@@ -14,8 +14,15 @@ def _accuracy(args: argparse.Namespace) -> str:
     return bench_accuracy.run(trials=args.trials, seed=args.seed)
 
 
+def _speed(args: argparse.Namespace) -> str:
+    from service import bench_speed
+
+    return bench_speed.run(n_frames=args.frames, seed=args.seed)
+
+
 SECTIONS: dict[str, Callable[[argparse.Namespace], str]] = {
     "accuracy": _accuracy,
+    "speed": _speed,
 }
 
 

@@ -117,6 +117,31 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_targets_sheet(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from service.targets_sheet import SheetOptions, field_json_of_sheet, make_sheet
+
+    try:
+        options = SheetOptions(
+            width_mm=args.width_mm, height_mm=args.height_mm, n_coded=args.coded, n_uncoded=args.uncoded,
+            coded_diameter_mm=args.coded_diameter_mm, uncoded_diameter_mm=args.uncoded_diameter_mm,
+            margin_mm=args.margin_mm, clearance_mm=args.clearance_mm, first_code=args.first_code,
+            title=args.title, name=args.name, seed=args.seed, ruler_mm=args.ruler_mm, labels=not args.no_labels,
+        )
+        svg, field = make_sheet(options)
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    svg_path = Path(args.svg)
+    svg_path.parent.mkdir(parents=True, exist_ok=True)
+    svg_path.write_text(svg, encoding="utf-8")
+    formats.write_json_atomic(args.field, field_json_of_sheet(field, options))
+    n_coded = int(field.is_coded.sum())
+    print(f"posecell targets sheet: {options.width_mm:g} x {options.height_mm:g} mm, {n_coded} coded + "
+          f"{len(field) - n_coded} uncoded targets -> {args.svg}, {args.field}", file=sys.stderr)
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from service.demo import run_demo
 
@@ -205,6 +230,33 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--blur-px", type=float, default=0.6)
     sim.set_defaults(func=cmd_simulate)
 
+    tg = sub.add_parser("targets", help="target sheets").add_subparsers(dest="what", metavar="WHAT")
+    tg.required = True
+    sh = tg.add_parser(
+        "sheet",
+        help="printable target sheet (SVG, true size in mm) and its field.json",
+        description="Writes a printable SVG sheet (white targets on black, exact size in mm, each measuring "
+        "disk a <circle id=...>) and the field.json of exactly that sheet. The default suits the reference "
+        "scene: a plate seen from about 1 m by a 12 mm lens on a 1300x1030 px, 6.7 um sensor.",
+    )
+    sh.add_argument("--svg", required=True, help="output SVG")
+    sh.add_argument("--field", required=True, help="output field.json")
+    sh.add_argument("--width-mm", type=float, default=720.0)
+    sh.add_argument("--height-mm", type=float, default=580.0)
+    sh.add_argument("--coded", type=int, default=30, help="number of coded targets")
+    sh.add_argument("--uncoded", type=int, default=200, help="number of uncoded targets")
+    sh.add_argument("--coded-diameter-mm", type=float, default=10.0)
+    sh.add_argument("--uncoded-diameter-mm", type=float, default=6.0)
+    sh.add_argument("--margin-mm", type=float, default=40.0)
+    sh.add_argument("--clearance-mm", type=float, default=5.0)
+    sh.add_argument("--first-code", type=int, default=1)
+    sh.add_argument("--title", default="posecell target sheet")
+    sh.add_argument("--name", default="posecell-sheet", help="the field's name")
+    sh.add_argument("--seed", type=int, default=None, help="jitter the uncoded grid with this seed")
+    sh.add_argument("--ruler-mm", type=float, default=None, help="length of the drawn scale bar")
+    sh.add_argument("--no-labels", action="store_true", help="do not print target ids")
+    sh.set_defaults(func=cmd_targets_sheet)
+
     dm = sub.add_parser(
         "demo",
         help="the simulated cell measured live (JSON lines)",
@@ -226,8 +278,9 @@ def build_parser() -> argparse.ArgumentParser:
         "sections",
         nargs="*",
         default=[],
-        help="sections to run (default: all): accuracy",
+        help="sections to run (default: all): accuracy, speed",
     )
+    b.add_argument("--frames", type=int, default=120, help="rendered frames for the speed section")
     b.add_argument("--trials", type=int, default=500, help="Monte-Carlo trials for the accuracy tables")
     b.add_argument("--seed", type=int, default=1)
     b.set_defaults(func=cmd_bench)

@@ -127,3 +127,64 @@ def test_bench_accuracy_prints_both_paper_tables():
 def test_unknown_verb_is_a_usage_error():
     r = run("frobnicate")
     assert r.returncode == 2 and "invalid choice" in r.stderr
+
+
+def test_targets_sheet_writes_an_svg_and_the_field_of_that_sheet(tmp_path):
+    r = run("targets", "sheet", "--svg", str(tmp_path / "s.svg"), "--field", str(tmp_path / "f.json"),
+            "--coded", "12", "--uncoded", "40", "--width-mm", "400", "--height-mm", "300")
+    assert r.returncode == 0, r.stderr
+    field = formats.read_field(tmp_path / "f.json")
+    svg = (tmp_path / "s.svg").read_text()
+    assert 'width="400mm"' in svg and 'height="300mm"' in svg
+    assert int(field.is_coded.sum()) == 12 and len(field) == 52
+    assert all(f'id="{i}"' in svg for i in field.ids)
+
+
+def test_targets_sheet_with_impossible_options_is_a_clear_error(tmp_path):
+    r = run("targets", "sheet", "--svg", str(tmp_path / "s.svg"), "--field", str(tmp_path / "f.json"),
+            "--coded", "500")
+    assert r.returncode == 2 and "outside the family" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "s.svg").exists()
+
+
+def test_simulate_then_measure_recovers_the_simulated_poses(tmp_path):
+    r = run("simulate", "-o", str(tmp_path), "--frames", "3", "--seed", "4")
+    assert r.returncode == 0, r.stderr
+    truth = [json.loads(line) for line in (tmp_path / "truth.jsonl").read_text().splitlines()]
+    images = [str(tmp_path / t["image"]) for t in truth]
+    r = run("measure", "--camera", str(tmp_path / "camera.json"), "--field", str(tmp_path / "field.json"), *images)
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(line) for line in r.stdout.splitlines()]
+    assert len(lines) == 3
+    for out, t in zip(lines, truth, strict=True):
+        assert out["ok"], out
+        assert np.allclose(np.array(out["T_field_camera"])[:3, 3], np.array(t["T_field_camera"])[:3, 3], atol=0.5)
+        assert out["n_coded"] >= 4 and out["n_uncoded"] > 50
+
+
+def test_measure_goes_on_past_unreadable_black_and_saturated_images(tmp_path):
+    import cv2
+
+    run("simulate", "-o", str(tmp_path), "--frames", "1")
+    (tmp_path / "garbage.png").write_bytes(b"this is not a png")
+    cv2.imwrite(str(tmp_path / "black.png"), np.zeros((1030, 1300), np.uint8))
+    cv2.imwrite(str(tmp_path / "white.tif"), np.full((1030, 1300), 65535, np.uint16))
+    images = [tmp_path / "garbage.png", tmp_path / "black.png", tmp_path / "white.tif",
+              tmp_path / "missing.pgm", tmp_path / "frame_0000.png"]
+    r = run("measure", "--camera", str(tmp_path / "camera.json"), "--field", str(tmp_path / "field.json"),
+            *map(str, images))
+    assert r.returncode == 0  # at least one image was measured
+    out = [json.loads(line) for line in r.stdout.splitlines()]
+    assert [o["ok"] for o in out] == [False, False, False, False, True]
+    assert [o.get("reason") for o in out[:4]] == ["bad_image", "too_few_targets", "too_few_targets", "bad_image"]
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 4
+
+
+def test_demo_measures_the_simulated_cell_live():
+    r = run("demo", "--frames", "8", "--laps", "1", "--rate-hz", "200")
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(line) for line in r.stdout.splitlines()]
+    frames, summary = lines[:-1], lines[-1]
+    assert len(frames) == 8 and all(f["ok"] for f in frames)
+    assert frames[0]["mode"] == "full"
+    assert summary["rms_error_vs_truth_mm"] < 0.2
