@@ -7,6 +7,7 @@ non-zero (2 for a usage or file problem, 1 for a measurement that failed).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from collections.abc import Callable, Sequence
@@ -77,13 +78,20 @@ def cmd_calibrate_handeye(args: argparse.Namespace) -> int:
 
 
 def cmd_measure(args: argparse.Namespace) -> int:
+    from service.core.codes import FAMILIES
+    from service.core.detect import DetectSettings
     from service.pipeline import FrameMeasurer, MeasureSettings
 
     camera = formats.read_camera(args.camera)
     field = formats.read_field(args.field)
-    measurer = FrameMeasurer(
-        camera, field, MeasureSettings(sigma_px=args.sigma_px, correct_eccentricity=not args.no_eccentricity)
-    )
+    detect = DetectSettings(**{k: v for k, v in (("min_contrast_dn", args.min_contrast_dn),
+                                                 ("min_area_px", args.min_area_px),
+                                                 ("max_area_px", args.max_area_px)) if v is not None})
+    settings = MeasureSettings(sigma_px=args.sigma_px, correct_eccentricity=not args.no_eccentricity,
+                               detect=detect, code_family=FAMILIES[args.code_family])
+    if args.max_sigma0_px is not None:
+        settings = dataclasses.replace(settings, max_sigma0_px=args.max_sigma0_px)
+    measurer = FrameMeasurer(camera, field, settings)
     failed = 0
     for path in args.images:
         try:
@@ -208,6 +216,18 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--sigma-px", type=float, default=None, help="a-priori image precision, px")
     m.add_argument("--no-eccentricity", action="store_true",
                    help="do not correct the perspective bias of circle centres")
+    m.add_argument("--code-family", choices=["posecell12", "aicon14"], default="posecell12",
+                   help="ring code of the coded targets: posecell's own 12-bit targets (default) or "
+                   "AICON-style 14-bit targets as MicMac MMVII reads them (field: an AICON point list .txt)")
+    m.add_argument("--min-contrast-dn", type=float, default=None,
+                   help="smallest target contrast above the local background, 8-bit DN (default 20; "
+                   "raise it for flash-lit 8-bit images with a textured background)")
+    m.add_argument("--min-area-px", type=int, default=None, help="smallest blob area, px (default 6)")
+    m.add_argument("--max-area-px", type=int, default=None,
+                   help="largest blob area, px (default 5000); lower it to ignore bright patches "
+                   "(stickers, labels) bigger than any target")
+    m.add_argument("--max-sigma0-px", type=float, default=None,
+                   help="largest accepted sigma0 of the final adjustment, px (default 0.5)")
     m.add_argument("images", nargs="+", metavar="IMAGE", help="PNG, TIFF or PGM, 8 or 16 bit")
     m.set_defaults(func=cmd_measure)
 

@@ -155,9 +155,60 @@ def field_from_csv(text: str, source: str = "field.csv") -> Field:
     return field_from_json({"name": Path(source).stem, "targets": targets}, source)
 
 
+#: Coded-target numbers of the AICON 14-bit family (service.core.codes_micmac): 1..516.
+AICON_MAX_CODE = 516
+
+
+def field_from_aicon_txt(
+    text: str,
+    source: str = "points.txt",
+    *,
+    coded_diameter_mm: float = math.nan,
+    uncoded_diameter_mm: float = math.nan,
+    max_code: int = AICON_MAX_CODE,
+) -> Field:
+    """An AICON-style point list, as MicMac's ``Positions-3D-14bit_lookup.txt``.
+
+    Whitespace-separated rows ``name X Y Z [more columns]``, X, Y, Z in mm; the
+    columns after Z (AICON's "fix" flags and counts) are ignored, as MMVII's
+    ``ImportGCP ... NXYZ`` ignores them; blank lines and ``#`` comments are skipped.
+    A name that is a whole number in 1..``max_code`` is a coded target whose code
+    is that number (the AICON number of the 14-bit family, read with
+    ``service.core.codes.AICON14``); any other name (AICON's uncoded points,
+    e.g. 2001, 2002, ...) is an uncoded target. The file holds no target sizes:
+    pass them, or leave them NaN for the pipeline's defaults.
+    """
+    targets = []
+    for k, line in enumerate(text.splitlines(), start=1):
+        cells = line.split("#", 1)[0].split()
+        if not cells:
+            continue
+        try:
+            xyz = [float(v) for v in cells[1:4]]
+            if len(xyz) != 3:
+                raise ValueError
+        except ValueError:
+            raise FormatError(f"{source}: line {k} is not 'name X Y Z ...' (mm): {line.strip()!r}") from None
+        t: dict[str, Any] = {"id": cells[0], "xyz": xyz}
+        coded = cells[0].isdigit() and 1 <= int(cells[0]) <= max_code
+        if coded:
+            t["code"] = int(cells[0])
+        diameter = coded_diameter_mm if coded else uncoded_diameter_mm
+        if math.isfinite(diameter):
+            t["diameter_mm"] = float(diameter)
+        targets.append(t)
+    if not targets:
+        raise FormatError(f"{source}: no target rows 'name X Y Z ...' found")
+    return field_from_json({"name": Path(source).stem, "targets": targets}, source)
+
+
 def read_field(path: str | os.PathLike[str]) -> Field:
-    if str(path).lower().endswith(".csv"):
+    """field.json, field.csv (:func:`field_from_csv`) or an AICON point list .txt (:func:`field_from_aicon_txt`)."""
+    suffix = str(path).lower()
+    if suffix.endswith(".csv"):
         return field_from_csv(_read_text(path), str(path))
+    if suffix.endswith(".txt"):
+        return field_from_aicon_txt(_read_text(path), str(path))
     return field_from_json(read_json(path), str(path))
 
 

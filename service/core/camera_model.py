@@ -21,7 +21,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.core.geometry_kernels import correction_kernel, sensor_from_ideal_kernel
+
 Array = NDArray[np.float64]
+
+
+def _flat(a: ArrayLike) -> Array:
+    """A writable, contiguous float64 1-D copy or view: the one array type the kernels are compiled for."""
+    return np.require(np.ravel(a), np.float64, ["C", "W"])
 
 PARAMETER_NAMES = ("c_mm", "x0_mm", "y0_mm", "K1", "K2", "K3", "P1", "P2", "B1", "B2")
 
@@ -90,25 +97,21 @@ class BrownFraser:
 
     # -- the correction -----------------------------------------------------
 
+    def _coefficients(self) -> tuple[float, ...]:
+        """K1, K2, K3, P1, P2, B1, B2 as floats (one compiled kernel for any way they were given)."""
+        return (float(self.K1), float(self.K2), float(self.K3), float(self.P1), float(self.P2), float(self.B1),
+                float(self.B2))
+
     def _correction(self, xb: Array, yb: Array) -> tuple[Array, Array]:
-        r2 = xb * xb + yb * yb
-        radial = r2 * (self.K1 + r2 * (self.K2 + r2 * self.K3))
-        dx = xb * radial + self.P1 * (r2 + 2 * xb * xb) + 2 * self.P2 * xb * yb
-        dx = dx + self.B1 * xb + self.B2 * yb
-        dy = yb * radial + 2 * self.P1 * xb * yb + self.P2 * (r2 + 2 * yb * yb)
-        return dx, dy
+        xb, yb = np.broadcast_arrays(np.asarray(xb, dtype=np.float64), np.asarray(yb, dtype=np.float64))
+        dx, dy, _ = correction_kernel(_flat(xb), _flat(yb), *self._coefficients(), False)
+        return dx.reshape(xb.shape), dy.reshape(xb.shape)
 
     def _correction_jacobian(self, xb: Array, yb: Array) -> Array:
         """d(x, y)/d(x_bar, y_bar), shape (N, 2, 2)."""
-        r2 = xb * xb + yb * yb
-        radial = r2 * (self.K1 + r2 * (self.K2 + r2 * self.K3))
-        g = self.K1 + r2 * (2 * self.K2 + 3 * self.K3 * r2)  # d radial / d r^2
-        J = np.empty(xb.shape + (2, 2))
-        J[..., 0, 0] = 1 + radial + 2 * xb * xb * g + 6 * self.P1 * xb + 2 * self.P2 * yb + self.B1
-        J[..., 0, 1] = 2 * xb * yb * g + 2 * self.P1 * yb + 2 * self.P2 * xb + self.B2
-        J[..., 1, 0] = 2 * xb * yb * g + 2 * self.P1 * yb + 2 * self.P2 * xb
-        J[..., 1, 1] = 1 + radial + 2 * yb * yb * g + 2 * self.P1 * xb + 6 * self.P2 * yb
-        return J
+        xb, yb = np.broadcast_arrays(np.asarray(xb, dtype=np.float64), np.asarray(yb, dtype=np.float64))
+        _, _, J = correction_kernel(_flat(xb), _flat(yb), *self._coefficients(), True)
+        return J.reshape(xb.shape + (2, 2))
 
     def ideal_from_sensor(self, xy_sensor: ArrayLike) -> Array:
         """Ideal coordinates (N, 2) mm from measured sensor coordinates (N, 2) mm."""
@@ -121,25 +124,16 @@ class BrownFraser:
     def sensor_from_ideal(self, xy_ideal: ArrayLike, max_iter: int = 20) -> Array:
         """Measured sensor coordinates (N, 2) mm of ideal coordinates (N, 2) mm.
 
-        Inverts :meth:`ideal_from_sensor` by Newton's method, vectorised over
-        all points; stops when every point moved less than 1e-12 mm.
+        Inverts :meth:`ideal_from_sensor` by Newton's method, point by point (compiled: the
+        prediction of every target runs per frame); each point stops when it moved less than
+        1e-12 mm.
         """
         target = np.asarray(xy_ideal, dtype=np.float64)
-        xb = target[..., 0].copy()
-        yb = target[..., 1].copy()
-        for _ in range(max_iter):
-            dx, dy = self._correction(xb, yb)
-            rx = xb + dx - target[..., 0]
-            ry = yb + dy - target[..., 1]
-            J = self._correction_jacobian(xb, yb)
-            det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
-            step_x = (J[..., 1, 1] * rx - J[..., 0, 1] * ry) / det
-            step_y = (-J[..., 1, 0] * rx + J[..., 0, 0] * ry) / det
-            xb -= step_x
-            yb -= step_y
-            if np.all(np.abs(step_x) < 1e-12) and np.all(np.abs(step_y) < 1e-12):
-                break
-        return np.stack([xb + self.x0_mm, yb + self.y0_mm], axis=-1)
+        flat = _flat(target).reshape(-1, 2)
+        xb = sensor_from_ideal_kernel(flat, *self._coefficients(), int(max_iter))
+        xb[:, 0] += self.x0_mm
+        xb[:, 1] += self.y0_mm
+        return xb.reshape(target.shape)
 
     # -- compositions -------------------------------------------------------
 

@@ -20,6 +20,8 @@ angle is determined too. Codes are numbered 1..N in increasing canonical value.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -164,3 +166,85 @@ def bright_runs(code: int) -> list[tuple[int, int]]:
         else:
             k += 1
     return runs
+
+
+# -- code families ----------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CodeFamily:
+    """A ring code the reader (:mod:`service.core.decode`) can decode.
+
+    Every family shares the layout of a bright disk (r <= R), a dark gap and a
+    ring of ``n_bits`` equal sectors numbered counter-clockwise as the target
+    is seen from its front, bit 1 = bright; codes are numbered 1..N in the order
+    of ``code_words()``, each word the smallest rotation of its ring pattern.
+
+    name : str
+        Short name, as the CLI's ``--code-family`` takes it.
+    n_bits : int
+        Sectors in the ring.
+    ring_inner, ring_outer : float
+        The ring's edges, in disk radii.
+    ring_radii : tuple of float, even length
+        Radii (disk radii) at which the ring is sampled, inside the ring with a
+        margin for blur and ellipse error; the first half are "inner", the rest "outer".
+    code_words : callable
+        Returns the canonical words, index ``code - 1`` (cached by its module).
+    """
+
+    name: str
+    n_bits: int
+    ring_inner: float
+    ring_outer: float
+    ring_radii: tuple[float, ...]
+    code_words: Callable[[], tuple[int, ...]]
+
+    def __post_init__(self) -> None:
+        r = self.ring_radii
+        if not (len(r) >= 2 and len(r) % 2 == 0 and self.ring_inner < min(r) and max(r) < self.ring_outer):
+            raise ValueError(f"{self.name}: ring_radii {r} must be an even number of radii inside "
+                             f"[{self.ring_inner}, {self.ring_outer}]")
+
+    @property
+    def n_codes(self) -> int:
+        return len(self.code_words())
+
+
+@lru_cache(maxsize=8)
+def family_word_table(family: CodeFamily) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(code, roll in sectors) of every ``family.n_bits``-bit word: two read-only (2**n_bits,) arrays.
+
+    Code 0 means the word is no code. A word with a period (possible in some
+    families, e.g. the 14-bit words of period 7) gets its smallest roll.
+
+    >>> code, roll = family_word_table(POSECELL12)
+    >>> bool(np.array_equal(code, word_table()[0]) and np.array_equal(roll, word_table()[1]))
+    True
+    """
+    n = family.n_bits
+    mask = (1 << n) - 1
+    code = np.zeros(1 << n, dtype=np.int64)
+    roll = np.zeros(1 << n, dtype=np.int64)
+    for i, w in enumerate(family.code_words()):
+        for k in reversed(range(n)):  # the smallest roll is written last and wins
+            r = ((w << k) | (w >> (n - k))) & mask
+            code[r], roll[r] = i + 1, k
+    code.flags.writeable = False
+    roll.flags.writeable = False
+    return code, roll
+
+
+def _aicon14_words() -> tuple[int, ...]:
+    from service.core import codes_micmac  # generating its 516 words takes ~0.1 s: only when asked
+
+    return codes_micmac.code_words()
+
+
+#: posecell's own 12-bit family (this module): ring 2.0-3.2 R.
+POSECELL12 = CodeFamily("posecell12", N_BITS, RING_INNER, RING_OUTER, (2.3, 2.5, 2.7, 2.9), code_words)
+#: The AICON / MicMac MMVII "CERN 14" family (:mod:`service.core.codes_micmac`): ring 2.0-3.0 R,
+#: code = the AICON number. Sampled at 2.25-2.75 R as MMVII does: the ring's outer edge is 3.0 R.
+AICON14 = CodeFamily("aicon14", 14, 2.0, 3.0, (2.25, 2.4167, 2.5833, 2.75), _aicon14_words)
+#: The families by name.
+FAMILIES = {f.name: f for f in (POSECELL12, AICON14)}

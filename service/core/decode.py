@@ -1,5 +1,11 @@
 """Reading the code ring of a coded target (see :mod:`service.core.codes`) from a grey image.
 
+The reader takes the code family as a parameter (:class:`~service.core.codes.CodeFamily`):
+posecell's own 12-bit ring (2.0-3.2 disk radii, the default) or the 14-bit ring of
+AICON-style plates as MicMac MMVII reads them (2.0-3.0 R, :mod:`service.core.codes_micmac`).
+Both number their sectors the same way round, so the same reading serves both; the
+numbers below are for the 12-bit ring.
+
 Input is the ellipse fitted to the image of the target's central disk. The map
 from the target plane to the image is, to first order, the affine map that
 takes the unit circle onto that ellipse, up to an unknown rotation (the
@@ -29,12 +35,12 @@ Steps, for all targets at once (``read_codes``; about 0.18 ms per coded target i
    each can be the worse one. A contour fit is off by a fraction of a
    pixel; a re-fit of a dim, noisy 8 px disk can turn by 10 deg.
 3. Sample the disk, the dark gap (1.4..1.6 R) and the ring at radii
-   2.3..2.9 R, clear of the ring's edges at 2.0 and 3.2 R. Sampling uses 16
-   angles per sector, bilinear.
+   2.3..2.9 R, clear of the ring's edges at 2.0 and 3.2 R (2.25..2.75 R for the
+   14-bit ring's 2.0 and 3.0 R). Sampling uses 16 angles per sector, bilinear.
 4. For each of the 16 sector phases, take each sector's level in four parts
    (inner/outer radii x first/second half of the sector's middle half) and
    normalise it to ``(level - background) / (disk - background)``. Split the
-   12 levels at their widest gap: an adaptive threshold that holds when blur
+   12 (or 14) levels at their widest gap: an adaptive threshold that holds when blur
    dims isolated bright sectors. The margin is the darkest part of any
    bright sector minus the brightest part of any dark one. Keep the phase
    with the widest margin, look the word up in the code table, and get the
@@ -46,6 +52,7 @@ The result is ``None``, never a guess, when:
 - the margin is below ``min_confidence``, or below ``min_margin_snr`` times the
   pixel noise;
 - the gap is not dark all round (the ring is squeezed into it);
+- a sector is far brighter than the disk (something else reaches into the ring);
 - the disk is smaller than ``min_diameter_px``, or its minor semi-axis is
   smaller than ``min_minor_px``;
 - the contrast is not clearly above the noise;
@@ -73,12 +80,11 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service.core.codes import N_BITS, RING_INNER, RING_OUTER, word_table
+from service.core.codes import POSECELL12, CodeFamily, family_word_table
 
 Array = NDArray[np.float64]
 
 SAMPLES_PER_SECTOR = 16
-RING_RADII = (2.3, 2.5, 2.7, 2.9)  # in disk radii; inside [RING_INNER, RING_OUTER] with a margin
 GAP_RADII = (1.4, 1.6)  # the dark annulus between disk and ring: the target's own background
 DISK_RADII = (0.0, 0.3, 0.5)
 # Part of each sector that is averaged: its middle half, well clear of phase and blur errors.
@@ -89,15 +95,17 @@ MIN_AXIS_RATIO = 0.25
 # Largest brightness range round the gap annulus, in disk contrasts: within a 60 deg view it stays
 # below ~0.45 even for 8 px disks; squeezed rings at 70+ deg push it above.
 MAX_GAP_SPREAD = 0.5
-
-assert RING_INNER < min(RING_RADII) and max(RING_RADII) < RING_OUTER
+# Brightest accepted sector, in disk contrasts. The ring is the disk's material, and blur only dims
+# it: on MicMac's real AICON panel 1016 correct readings stayed below 1.2, while the one wrong
+# reading found there (a bright neighbour reaching into the ring zone) had sectors at 1.86.
+MAX_SECTOR_LEVEL = 1.5
 
 
 @dataclass(frozen=True)
 class CodeReading:
     """One decoded coded target.
 
-    code : int, 1..n_codes()
+    code : int, 1..family.n_codes (for the AICON family, the AICON number)
     roll_deg : float, deg
         The direction in the image of the target's local +x axis (the start of
         sector 0), counter-clockwise as displayed (from +u towards -v), in
@@ -107,10 +115,10 @@ class CodeReading:
         minus the brightest part of any dark sector, as a fraction of the
         disk-to-background contrast. 1 is a perfect ring, 0 or less means no
         separation.
-    bits : (N_BITS,) bool
+    bits : (n_bits,) bool
         The sectors as read, in the target's own sector order (equal to
         ``bits_of(code)``).
-    levels : (N_BITS,) float
+    levels : (n_bits,) float
         The normalised sector levels in the same order (0 = background, 1 = disk).
     disk_dn, background_dn : float
         The disk and background levels that were used, in image DN.
@@ -134,21 +142,22 @@ def _unit_circle(n: int, sign: float = 1.0) -> Array:
     return np.stack([np.cos(sign * t), np.sin(sign * t)], axis=-1)
 
 
-@lru_cache(maxsize=1)
-def _pattern() -> tuple[Array, int, int]:
+@lru_cache(maxsize=4)
+def _pattern(family: CodeFamily) -> tuple[Array, int, int]:
     """Normalised sample points (P, 2) of disk, gap and ring; the sizes of the first two groups."""
     disk = np.concatenate([r * _unit_circle(8) for r in DISK_RADII])
     gap = np.concatenate([r * _unit_circle(24) for r in GAP_RADII])
     # Ring angle t runs with the target's theta, i.e. psi = -t in the normalised frame.
-    ring = np.concatenate([r * _unit_circle(N_BITS * SAMPLES_PER_SECTOR, -1.0) for r in RING_RADII])
+    ring = np.concatenate([r * _unit_circle(family.n_bits * SAMPLES_PER_SECTOR, -1.0)
+                           for r in family.ring_radii])
     return np.concatenate([disk, gap, ring]), len(disk), len(gap)
 
 
-@lru_cache(maxsize=1)
-def _core_index() -> NDArray[np.intp]:
+@lru_cache(maxsize=4)
+def _core_index(n_bits: int) -> NDArray[np.intp]:
     """Indices (S * K * 2,) into the 5-sample running means of the profile: the two halves of the
     core of every sector at every phase, ordered (phase, sector, half)."""
-    S, K = SAMPLES_PER_SECTOR, N_BITS
+    S, K = SAMPLES_PER_SECTOR, n_bits
     a, b = (round(f * S) for f in SECTOR_CORE)
     assert b - S // 2 == S // 2 - a == RUN - 1
     idx = np.arange(S)[:, None, None] + S * np.arange(K)[None, :, None] + np.array([a, S // 2])
@@ -181,9 +190,10 @@ def _sample(img: NDArray[np.generic], e: Array, M: Array, pts: Array) -> Array:
     quantises positions to 1/32 px and rounds integer images to whole DN, which is far below
     what reading a ring needs.
     """
-    uv = (e[:, None, :2] + pts @ M.transpose(0, 2, 1)).astype(np.float32)  # (N, P, 2)
+    # by broadcasting: a stack of (P, 2) @ (2, 2) products is slower
+    u = (e[:, 0:1] + M[:, 0, 0:1] * pts[:, 0] + M[:, 0, 1:2] * pts[:, 1]).astype(np.float32)  # (N, P)
+    v = (e[:, 1:2] + M[:, 1, 0:1] * pts[:, 0] + M[:, 1, 1:2] * pts[:, 1]).astype(np.float32)
     h, w = img.shape
-    u, v = uv[..., 0], uv[..., 1]
     vals = cv2.remap(img, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
     return np.where(inside, vals.astype(np.float64), np.nan)
@@ -319,19 +329,21 @@ def _refine_ellipse(img: NDArray[np.generic], e: Array) -> Array:
     return out
 
 
-def _measure(img: NDArray[np.generic], e: Array, background_dn: Array | None) -> dict[str, Array]:
+def _measure(img: NDArray[np.generic], e: Array, background_dn: Array | None,
+             family: CodeFamily) -> dict[str, Array]:
     """All intermediate arrays of the reading, for (N,) ellipses."""
     n = len(e)
-    S, K = SAMPLES_PER_SECTOR, N_BITS
+    S, K = SAMPLES_PER_SECTOR, family.n_bits
     n_angles = K * S
+    n_radii = len(family.ring_radii)
     M = _affine(e)
-    pts, n_disk, n_gap = _pattern()
+    pts, n_disk, n_gap = _pattern(family)
     vals = _sample(img, e, M, pts)
     inside = np.all(np.isfinite(vals), axis=1)
     vals = np.where(inside[:, None], vals, 0.0)
     disk_s = vals[:, :n_disk]
     gap_s = vals[:, n_disk:n_disk + n_gap]
-    ring = vals[:, n_disk + n_gap:].reshape(n, len(RING_RADII), n_angles)
+    ring = vals[:, n_disk + n_gap:].reshape(n, n_radii, n_angles)
 
     disk_dn = np.median(disk_s, axis=1)
     gap_dn = np.median(gap_s, axis=1)
@@ -351,13 +363,14 @@ def _measure(img: NDArray[np.generic], e: Array, background_dn: Array | None) ->
     # m*S samples), each in four parts of the sector's core: inner/outer radii x first/second
     # half. A misplaced ring, or a sector smeared into its neighbour, makes the parts disagree.
     # (N, 2, K*S): inner and outer radii
-    prof2 = np.stack([profile_r[:, :2].mean(axis=1), profile_r[:, 2:].mean(axis=1)], axis=1)
+    h = n_radii // 2
+    prof2 = np.stack([profile_r[:, :h].mean(axis=1), profile_r[:, h:].mean(axis=1)], axis=1)
     mid = 0.5 * (prof2 + np.roll(prof2, -1, axis=2))  # value at t = i + 0.5 samples
     # Running means of RUN consecutive samples (wrapping round), then one gather for all phases.
     wrapped = np.concatenate([mid, mid[:, :, : RUN - 1]], axis=2)
     csum = np.concatenate([np.zeros((n, 2, 1)), np.cumsum(wrapped, axis=2)], axis=2)
     run_mean = (csum[:, :, RUN:] - csum[:, :, :-RUN]) / RUN  # (N, 2, K*S): mean of mid[i..i+RUN-1]
-    part = run_mean[:, :, _core_index()].reshape(n, 2, S, K, 2)  # (N, radius, phase, K, half)
+    part = run_mean[:, :, _core_index(K)].reshape(n, 2, S, K, 2)  # (N, radius, phase, K, half)
     part = part.transpose(0, 2, 3, 1, 4).reshape(n, S, K, 4)
     levels_all = part.mean(axis=3)  # (N, phase, K)
 
@@ -391,11 +404,11 @@ def _measure(img: NDArray[np.generic], e: Array, background_dn: Array | None) ->
         frac = np.where(denom < 0, 0.5 * (em - ep) / np.where(denom < 0, denom, -1.0), 0.0)
     phase = j + 0.5 + (((jj - j + S // 2) % S) - S // 2) + np.clip(np.nan_to_num(frac), -0.5, 0.5)
     words = (bits.astype(np.int64) << np.arange(K)).sum(axis=1)
-    code_of, roll_of = word_table()
+    code_of, roll_of = family_word_table(family)
     codes, rolls = code_of[words], roll_of[words]
 
-    # Read sector m is the target's sector m - roll, whose start theta = 30*(m - roll)
-    # lies at t = phase + 30*m; theta = phi + t gives phi.
+    # Read sector m is the target's sector m - roll, whose start theta = (m - roll) * 360/K deg
+    # lies at t = phase + m * S samples; theta = phi + t gives phi.
     phi = -(rolls * S + phase) * (2 * np.pi / n_angles)
     d = (M @ np.stack([np.cos(phi), np.sin(phi)], axis=-1)[..., None])[..., 0]
     roll_deg = np.degrees(np.arctan2(-d[:, 1], d[:, 0]))
@@ -415,6 +428,7 @@ def read_codes(
     min_minor_px: float = 1.9,
     min_diameter_px: float = 6.5,
     min_margin_snr: float = 4.0,
+    family: CodeFamily = POSECELL12,
 ) -> list[CodeReading | None]:
     """Decode the code rings of many coded targets in one image (vectorised).
 
@@ -448,6 +462,11 @@ def read_codes(
     min_margin_snr : float
         The margin, in DN, must also be this many times the pixel noise. On a
         dim target, a margin of a fifth of the contrast lies within the noise.
+    family : CodeFamily
+        The ring code: posecell's own 12-bit family (:data:`~service.core.codes.POSECELL12`,
+        the default) or the AICON / MicMac 14-bit one (:data:`~service.core.codes.AICON14`).
+        A family with periodic words (14-bit codes of period 7) gives their roll
+        only modulo the period.
 
     Returns
     -------
@@ -474,24 +493,26 @@ def read_codes(
     # The pipeline hands over every blob, most of them uncoded: a cheap look for any bright ring
     # first, so that the full reading runs only where there may be one.
     out: list[CodeReading | None] = [None] * n
-    todo = np.flatnonzero(valid & _may_have_ring(img, e))
+    todo = np.flatnonzero(valid & _may_have_ring(img, e, family))
     if len(todo) == 0:
         return out
     readings = _read(img, e[todo], None if bg is None else bg[todo], min_confidence, min_snr,
-                     min_minor_px, min_diameter_px, min_margin_snr)
-    for i, reading in zip(todo, readings):
+                     min_minor_px, min_diameter_px, min_margin_snr, family)
+    for i, reading in zip(todo, readings, strict=True):
         out[i] = reading
     return out
 
 
-def _may_have_ring(img: NDArray[np.generic], e: Array) -> NDArray[np.bool_]:
+def _may_have_ring(img: NDArray[np.generic], e: Array, family: CodeFamily) -> NDArray[np.bool_]:
     """Whether anything in the ring zone is clearly brighter than the gap, per ellipse (N,).
 
-    Generous on purpose: radii 2.2-3.0 R cover ellipses that are 10-30 % off, and a quarter of
+    Generous on purpose: radii from 0.2 R inside the ring's inner edge to 0.2 R inside its outer
+    edge (2.2-3.0 R for posecell's ring) cover ellipses that are 10-30 % off, and a quarter of
     the disk's contrast is far below a bright sector's level.
     """
-    pts = np.concatenate([np.zeros((1, 2)), 1.5 * _unit_circle(12),
-                          2.2 * _unit_circle(48), 2.6 * _unit_circle(48), 3.0 * _unit_circle(48)])
+    r0, r1 = family.ring_inner + 0.2, family.ring_outer - 0.2
+    pts = np.concatenate([np.zeros((1, 2)), 1.5 * _unit_circle(12), r0 * _unit_circle(48),
+                          0.5 * (r0 + r1) * _unit_circle(48), r1 * _unit_circle(48)])
     vals = _sample(img, e, _affine(e), pts)
     disk, gap, ring = vals[:, 0], np.median(vals[:, 1:13], axis=1), vals[:, 13:]
     with np.errstate(invalid="ignore"):
@@ -501,7 +522,7 @@ def _may_have_ring(img: NDArray[np.generic], e: Array) -> NDArray[np.bool_]:
 
 def _read(img: NDArray[np.generic], e: Array, bg: Array | None, min_confidence: float,
           min_snr: float, min_minor_px: float, min_diameter_px: float,
-          min_margin_snr: float) -> list[CodeReading | None]:
+          min_margin_snr: float, family: CodeFamily) -> list[CodeReading | None]:
     """The full reading of :func:`read_codes` for valid ellipses (N, 5)."""
     n = len(e)
     # Read the ring twice: with the given ellipse and with its re-fit to the disk edge. Each can
@@ -512,7 +533,7 @@ def _read(img: NDArray[np.generic], e: Array, bg: Array | None, min_confidence: 
     both = np.concatenate([e, e_fit])
     # Integer images quantise weak noise to a zero spread; count at least the rounding error then.
     noise_floor_dn = 0.3 if np.issubdtype(img.dtype, np.integer) else 0.0
-    r = _measure(img, both, None if bg is None else np.r_[bg, bg])
+    r = _measure(img, both, None if bg is None else np.r_[bg, bg], family)
     b_px = np.minimum(both[:, 2], both[:, 3])
     a_px = np.maximum(both[:, 2], both[:, 3])
     good = (
@@ -530,6 +551,8 @@ def _read(img: NDArray[np.generic], e: Array, bg: Array | None, min_confidence: 
         & (r["gap_spread"] <= MAX_GAP_SPREAD)
         # The threshold must split the ring into "like the gap" and "like the disk".
         & (r["threshold"] > 0.1) & (r["threshold"] < 0.8)
+        # A sector far brighter than the disk is not the target's own ring.
+        & (r["levels"].max(axis=1) <= MAX_SECTOR_LEVEL)
         & (r["codes"] > 0)
     )
     g_in, g_fit = good[:n], good[n:]
@@ -542,7 +565,7 @@ def _read(img: NDArray[np.generic], e: Array, bg: Array | None, min_confidence: 
     r = {k: v[pick] for k, v in r.items()}
     e_fit = both[pick]
     # Target sector k was read as sector k + roll.
-    own = (np.arange(N_BITS)[None, :] + r["rolls"][:, None]) % N_BITS
+    own = (np.arange(family.n_bits)[None, :] + r["rolls"][:, None]) % family.n_bits
     bits = np.take_along_axis(r["bits"], own, axis=1)
     levels = np.take_along_axis(r["levels"], own, axis=1)
     out: list[CodeReading | None] = [None] * n
@@ -565,6 +588,7 @@ def read_code(
     ellipse: tuple[float, float, float, float, float],
     background_dn: float | None = None,
     min_confidence: float = 0.2,
+    family: CodeFamily = POSECELL12,
 ) -> CodeReading | None:
     """Decode one coded target; see :func:`read_codes` for the parameters.
 
@@ -573,4 +597,4 @@ def read_code(
     margin of at least ``min_confidence``; the reader never guesses.
     """
     return read_codes(image, [ellipse], None if background_dn is None else [background_dn],
-                      min_confidence=min_confidence)[0]
+                      min_confidence=min_confidence, family=family)[0]

@@ -2,8 +2,8 @@
 
 :func:`detect_blobs` finds and measures every target in a full frame;
 :func:`measure_windows` measures the targets in small windows around predicted
-positions (ROI tracking). Both use one primitive, vectorised over stacks of
-windows (:func:`_measure`).
+positions (ROI tracking). Both use one primitive over many windows
+(:func:`_measure_all`, a compiled loop in :mod:`service.core.detect_kernel`).
 
 Full frame:
 
@@ -31,7 +31,7 @@ Per window (the circle of radius ``h + 1/2``):
   drawn with the same edge) catches other misfits. The moment statistics are compared with their
   own predicted noise, so the tests hold for faint and bright targets alike. Notches that move
   the centre by less than about 0.3 px (at the reference noise) are not detected;
-- precision ``sigma_px``: pixel noise propagated through the centroid (:func:`_measure`), with
+- precision ``sigma_px``: pixel noise propagated through the centroid (:func:`_measure_all`), with
   the shot noise measured on the targets' plateaus.
 
 Pixel convention (DESIGN section 2): the centre of the top-left pixel is (0, 0).
@@ -51,7 +51,9 @@ from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from service.core import detect_kernel
 from service.core.codes import RING_INNER, RING_OUTER
+from service.core.detect_kernel import assess_kernel, contour_sums_kernel, measure_windows_kernel
 from service.core.results import Reason, SolveError
 
 Array = NDArray[np.float64]
@@ -99,6 +101,8 @@ class Blobs:
     area_px : (N,) float, px^2 -- flux over plateau level: the area of the disk's image
     peak_dn, background_dn : (N,) float, DN -- brightest pixel; local background at the centre
     fill : (N,) float -- soft overlap of the blob with its ellipse (1: a perfect ellipse)
+    has_ring : (N,) bool -- pieces of a coded target's ring were found around it (only these
+        can be coded; :func:`measure_windows` does not look and says False)
     """
 
     uv: Array
@@ -108,6 +112,7 @@ class Blobs:
     peak_dn: Array
     background_dn: Array
     fill: Array
+    has_ring: NDArray[np.bool_]
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
@@ -204,19 +209,9 @@ def _contours(mask: NDArray[np.uint8]) -> _Contours:
     lengths = np.fromiter(map(len, found), dtype=np.intp, count=len(found))
     pts = np.concatenate(found).reshape(-1, 2)
     starts = np.cumsum(lengths) - lengths
-    box = np.concatenate([np.minimum.reduceat(pts, starts), np.maximum.reduceat(pts, starts)], axis=1).astype(np.intp)
-    # Green's theorem over each closed polygon, relative to its first vertex; rows x, y, x', y'
-    # (x' the next vertex) kept contiguous, since numpy is slow along short axes
-    xy = (pts - np.repeat(pts[starts], lengths, axis=0)).T.astype(f64, order="C")
-    nxt = np.arange(1, pts.shape[0] + 1)
-    nxt[starts + lengths - 1] = starts
-    (x, y), (x1, y1) = xy, xy[:, nxt]
-    cross = x * y1 - x1 * y
-    sx, sy = x + x1, y + y1
-    terms = np.stack([cross, np.maximum(np.abs(x1 - x), np.abs(y1 - y)), sx, sy,
-                      x * x + x * x1 + x1 * x1, y * y + y * y1 + y1 * y1, sx * sy + x * y + x1 * y1])
-    terms[2:] *= cross
-    sums = np.add.reduceat(terms, starts, axis=1)  # 2A, boundary steps, 6A c, 12A m2, 24A m11
+    # Green's theorem over each closed polygon, relative to its first vertex (compiled: one pass
+    # over the vertices instead of a dozen array passes)
+    box, sums, reach = contour_sums_kernel(np.require(pts, np.int32, ["C", "W"]), starts, lengths)
     a2 = sums[0]
     flat = np.abs(a2) < 0.5  # single pixels and lines (a lattice polygon has |2A| >= 1)
     a2s = np.where(flat, 1.0, a2)
@@ -226,8 +221,6 @@ def _contours(mask: NDArray[np.uint8]) -> _Contours:
     mu = np.stack([sums[4] / (6 * a2s) - cx * cx, sums[6] / (12 * a2s) - cx * cy, sums[5] / (6 * a2s) - cy * cy], 1)
     mu[flat] = 0.0
     box_centre = (box[:, :2] + box[:, 2:]) // 2
-    d = (pts - np.repeat(box_centre, lengths, axis=0)).T.astype(f64, order="C")
-    reach = np.ceil(np.sqrt(np.maximum.reduceat(d[0] * d[0] + d[1] * d[1], starts))).astype(np.intp)
     # Pick's theorem: pixels = polygon area + boundary pixels / 2 + 1
     return _Contours(box, 0.5 * np.abs(a2) + 0.5 * sums[1] + 1.0, 0.5 * np.abs(a2), np.stack([cx, cy], 1) + first,
                      mu, box_centre, reach)
@@ -322,7 +315,7 @@ def _tables(s: int) -> _Tables:
 
 @dataclass(frozen=True)
 class _Measured:
-    """Per window (n), see :func:`_measure`: centre (n, 2) px, ellipse (n, 5), flux S, plateau
+    """Per window (n), see :func:`_measure_all`: centre (n, 2) px, ellipse (n, 5), flux S, plateau
     level and peak and background (DN), background noise variance sb2 (rim plane residual), shot
     noise per DN of level, centroid variance from background noise and per unit shot coefficient,
     the fill's mismatch (sum |blob - ellipse model| / level) and what background noise adds to it
@@ -350,36 +343,7 @@ class _Measured:
     sums: Array
     n_sat: NDArray[np.intp]
     edge: NDArray[np.bool_]
-
-
-def _rim_plane(B: NDArray[np.float32], G: NDArray[np.float32], ruu: float,
-               seg: np.float32) -> tuple[Array, Array, NDArray[np.bool_], Array, Array]:
-    """Plane (n, 3: offset, du and dv slopes) through the rim values ``B`` (n, K) that are not
-    bright, its residual variance, whether two or more rim pixels are bright (one may be noise),
-    and the used rim's pixel count and sum of du^2. A rim with nothing bright on it is symmetric,
-    so its normal equations are diagonal; only rims crossed by something bright need a solve."""
-    n, k = B.shape
-    s1 = (B @ G).astype(f64)  # sums of B, B du, B dv
-    bright = B > (s1[:, 0] / k).astype(f32)[:, None] + seg
-    crossed, coef = bright.any(axis=1).nonzero()[0], s1 / np.array([k, ruu, ruu])
-    rss = (B * B).sum(axis=1).astype(f64) - (coef * s1).sum(axis=1)
-    m_used, ruu_used, edge = np.full(n, float(k)), np.full(n, ruu), np.zeros(n, dtype=bool)
-    if crossed.size:  # the level of what is not bright, then a plane through what is below it + seg
-        Bc, Gc = B[crossed].astype(f64), G.astype(f64)
-        keep = ~bright[crossed]
-        thr = (Bc * keep).sum(1) / np.maximum(keep.sum(1), 1) + seg
-        dark = (Bc <= thr[:, None]).astype(f64)
-        edge[crossed] = dark.sum(axis=1) <= k - 2
-        # normal equations: sums over the dark rim of the products 1, u, v, uu, uv, vv
-        w = dark @ (Gc[:, [0, 0, 0, 1, 1, 2]] * Gc[:, [0, 1, 2, 1, 2, 2]])
-        N = w[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
-        rhs = (dark * Bc) @ Gc
-        few = N[:, 0, 0] < 6
-        N[few], edge[crossed[few]] = np.eye(3), True
-        c = np.linalg.solve(N, rhs[:, :, None])[:, :, 0]
-        coef[crossed], rss[crossed] = c, (dark * Bc * Bc).sum(1) - (c * rhs).sum(1)
-        m_used[crossed], ruu_used[crossed] = N[:, 0, 0], 0.5 * (N[:, 1, 1] + N[:, 2, 2])
-    return coef, np.maximum(rss, 0.0) / np.maximum(m_used - 3.0, 1.0), edge, m_used, ruu_used
+    table: Array  # (NF, n): the kernel's output, whose rows the fields above are
 
 
 def _mask_others(P: NDArray[np.float32], own: Array, T: _Tables, s: int, seg: np.float32) -> None:
@@ -403,10 +367,14 @@ def _mask_others(P: NDArray[np.float32], own: Array, T: _Tables, s: int, seg: np
     P[crowd] = np.where(grown.reshape(-1, s * s) & outside, level0[:, None], Pc)
 
 
-def _measure(img: NDArray[np.generic], u0: NDArray[np.intp], v0: NDArray[np.intp], s: int,
-             seg_dn: float, full_dn: float, own: Array | None = None) -> _Measured:
-    """Measure the blob in the circle of radius ``s // 2 + 1/2`` about the centre of each
-    s x s array at ``(u0, v0)`` (inside the image); ``own``: see :func:`_mask_others`.
+def _measure_all(img: NDArray[np.generic], cu: NDArray[np.intp], cv: NDArray[np.intp],
+                 radius: NDArray[np.intp], seg_dn: float, full_dn: float,
+                 own: Array | None) -> tuple[_Measured, NDArray[np.bool_]]:
+    """Measure the blob in the circle of radius ``radius + 1/2`` px about each (cu, cv); ``own``:
+    see :func:`_mask_others`. The work per window is :func:`~service.core.detect_kernel.measure_windows_kernel`.
+
+    Returns the measurements in input order and whether each window fits in the image (the others
+    give zeros and a crossed rim).
 
     Precision: the centre is linear in the pixel values, the rim pixels
     counting twice (in the sums and through the plane fitted to them). With
@@ -419,105 +387,31 @@ def _measure(img: NDArray[np.generic], u0: NDArray[np.intp], v0: NDArray[np.intp
 
     likewise along v; ``sigma_px`` is the square root of their mean.
     """
-    n, h, ss, T, seg = u0.size, s // 2, s * s, _tables(s), f32(seg_dn)
-    raw = sliding_window_view(img, (s, s))[v0, u0].reshape(n, ss)  # a copy, in the image's dtype
-    peak, n_sat = raw.max(axis=1).astype(f64), np.zeros(n, dtype=np.intp)
-    hot = (peak >= full_dn).nonzero()[0]
-    if hot.size:
-        n_sat[hot] = ((raw[hot] >= full_dn) & (T.mask > 0)).sum(axis=1)
-    P = raw.astype(f32)
-    if own is not None:
-        _mask_others(P, own, T, s, seg)
-    coef, sb2, edge, m, ruu = _rim_plane(P[:, T.rim], T.rim_g, T.rim_uu, seg)
-    b0, b1, b2 = coef.T
-    P -= b0.astype(f32)[:, None]
-    P *= T.mask
-    mom = (P @ T.basis.T).astype(f64)
-    a0, a2, a4, a22 = T.sums[:4]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # raw moments about the window centre, over the flux; the slopes' odd moments removed
-        S = mom[:, 0]
-        mom[:, 1:3] -= coef[:, 1:] * a2
-        mom[:, 6:10] -= np.stack([b1 * a4, b2 * a22, b1 * a22, b2 * a4], axis=1)
-        r = mom[:, 1:] / S[:, None]
-        uc, vc, m20, m11, m02, m30, m21, m12, m03 = r[:, :9].T
-        mu_uu, mu_uv, mu_vv = m20 - uc * uc, m11 - uc * vc, m02 - vc * vc
-        finite = np.isfinite(uc) & np.isfinite(vc)
-        cuv = np.rint(np.where(finite[:, None], r[:, :2], 0.0)).clip(1 - h, h - 1).astype(np.intp) + h
-        core = P.take((np.arange(n) * ss + cuv[:, 1] * s + cuv[:, 0])[:, None] + T.nine).astype(f64)
-        slope_c, c1 = b1 * uc + b2 * vc, core.sum(1)
-        level, core_var = c1 / 9.0 - slope_c, ((core * core).sum(1) - c1 * c1 / 9.0) / 8.0
-        # the disk's edge: second moments less the blur variance
-        half_tr, root = 0.5 * (mu_uu + mu_vv), np.sqrt(0.25 * (mu_uu - mu_vv) ** 2 + mu_uv * mu_uv)
-        dq = S / (4.0 * np.pi * level)  # a b / 4
-        blur = np.fmax(np.fmin(half_tr - np.sqrt(root * root + dq * dq), 0.9 * (half_tr - root)), 0.0)
-        a_ax, b_ax = 2.0 * np.sqrt(half_tr + root - blur), 2.0 * np.sqrt(half_tr - root - blur)
-        ang = 0.5 * np.arctan2(2.0 * mu_uv, mu_uu - mu_vv)
-        good = finite & (S > 0) & (level > 0) & (b_ax > 0)
-        # third central moments (zero for a centrally symmetric blob), as complex moments:
-        # |mu3|^2 = (|E[z^3]|^2 + 3 |E[z^2 z*]|^2) / 4, z = x + i y about the centroid
-        z, z2, zz = uc + 1j * vc, (m20 - m02) + 2j * m11, m20 + m02  # about the window centre
-        a3 = (m30 - 3 * m12) + 1j * (3 * m21 - m03) - 3 * z * z2 + 2 * z**3
-        b3 = (m30 + m12) + 1j * (m21 + m03) - 2 * z * zz - z.conj() * z2 + 2 * z * z * z.conj()
-        m3sq = 0.25 * (np.abs(a3) ** 2 + 3 * np.abs(b3) ** 2)
-        # fourth central moment along the major axis, from the moments E[p^k] along it
-        c, sn = np.cos(ang), np.sin(ang)
-        cc, cs, ss2 = c * c, c * sn, sn * sn
-        p0, e2 = c * uc + sn * vc, cc * m20 + 2 * cs * m11 + ss2 * m02
-        e3 = c * cc * m30 + 3 * cc * sn * m21 + 3 * c * ss2 * m12 + sn * ss2 * m03
-        e4 = (cc * cc * r[:, 9] + 4 * cc * cs * r[:, 10] + 6 * cc * ss2 * r[:, 11] + 4 * cs * ss2 * r[:, 12]
-              + ss2 * ss2 * r[:, 13])
-        var_major, qa4 = e2 - p0 * p0, a_ax**2 / 4.0
-        kurt = (e4 - 4 * p0 * e3 + 6 * p0 * p0 * e2 - 3 * p0**4) / (var_major * var_major)
-        kurt_model = (2 * qa4 * qa4 + 6.0 * blur * qa4 + 3.0 * blur * blur) / (qa4 + blur) ** 2
-        # fill: the ellipse drawn as clip(level / 2 + k (1 - rho^2), 0, level), rho = 1 on its
-        # edge, a ramp of the blur's width; rho^2 is quadratic in (du, dv): a product with the basis
-        g_uu, g_vv = mu_uu - blur, mu_vv - blur
-        det4 = 4.0 * (g_uu * g_vv - mu_uv * mu_uv)
-        k = np.where(good, 0.5 * level * np.sqrt(a_ax * b_ax) / np.fmin(np.fmax(np.sqrt(2.0 * np.pi * blur), 0.5), 4.0),
-                     0.0) / det4
-        qa, qb, qc = k * g_vv, -k * mu_uv, k * g_uu
-        coef_m = np.stack([np.where(good, 0.5 * level, 0.0) + k * det4 - qa * uc * uc - 2 * qb * uc * vc - qc * vc * vc,
-                           2 * (qa * uc + qb * vc), 2 * (qb * uc + qc * vc), -qa, -2 * qb, -qc], axis=1)
-    coef_m[~good] = 0.0
-    model = coef_m.astype(f32) @ T.basis[:6]
-    np.minimum(np.maximum(model, 0, out=model), np.where(good, level, 0.0).astype(f32)[:, None], out=model)
-    model -= P  # P is zero outside the circle; so is the model of a blob inside it
-    mismatch = np.abs(model, out=model).sum(axis=1, dtype=f64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        area, uv = S / level, np.stack([uc + (u0 + h), vc + (v0 + h)], axis=1)
-        var_base = 0.5 * sb2 * (2.0 * (a2 * a2 / ruu - a2) + (uc * uc + vc * vc) * (a0 * a0 / m - a0)) / (S * S)
-        return _Measured(
-            uv=uv, ellipse=np.column_stack([uv, a_ax, b_ax, ang]), flux=S, level=level, peak=peak,
-            background=b0 + slope_c, sb2=sb2, k_shot=np.maximum(core_var - sb2, 0.0) / level,
-            var_base=var_base, var_per_k=half_tr / S, mismatch=np.where(good, mismatch / level, np.inf),
-            noise_bg=np.sqrt(2.0 / np.pi * sb2) * np.maximum(a0 - area, 0.0) / level, m3sq=m3sq,
-            kurt=kurt, kurt_model=kurt_model, flat_top=1.0 - blur / (half_tr - root), var_major=var_major,
-            sums=np.broadcast_to(T.sums, (n, 7)), n_sat=n_sat, edge=edge)
-
-
-def _measure_all(img: NDArray[np.generic], cu: NDArray[np.intp], cv: NDArray[np.intp],
-                 radius: NDArray[np.intp], seg_dn: float, full_dn: float,
-                 own: Array | None) -> tuple[_Measured, NDArray[np.bool_]]:
-    """Measure circular windows of ``radius + 1/2`` px about (cu, cv), one batch per radius.
-
-    Returns the measurements in input order and whether each window fits in the image.
-    """
     height, width = img.shape
+    cu, cv, radius = (np.require(x, np.intp, ["C", "W"]) for x in (cu, cv, radius))
+    if not img.flags.writeable:  # a read-only frame would need its own compiled kernel
+        img = img.copy()
     placed = (cu >= radius) & (cu + radius < width) & (cv >= radius) & (cv + radius < height) & (radius >= 2)
-    parts = [((placed & (radius == h)).nonzero()[0], h) for h in np.unique(radius[placed])]
-    parts = [(sel, _measure(img, cu[sel] - h, cv[sel] - h, 2 * int(h) + 1, seg_dn, full_dn,
-                            None if own is None else own[sel])) for sel, h in parts]
-    if len(parts) == 1 and parts[0][0].size == cu.size:
-        return parts[0][1], placed
-    out = {}
-    for f in fields(_Measured):  # unplaced windows: zeros, and a crossed rim
-        shape = {"uv": (2,), "ellipse": (5,), "sums": (7,)}.get(f.name, ())
-        make = np.ones if f.name == "edge" else np.zeros
-        out[f.name] = make((cu.size, *shape), dtype={"edge": bool, "n_sat": np.intp}.get(f.name, f64))
-        for sel, meas in parts:
-            out[f.name][sel] = getattr(meas, f.name)
-    return _Measured(**out), placed
+    buf, boff = np.zeros(1, f32), np.full(cu.size, -1, dtype=np.intp)
+    crowd = placed & np.isfinite(own[:, 0]) if own is not None else placed & False
+    if crowd.any():  # other blobs reach into these windows: mask them, one batch per radius
+        chunks, off = [], 0
+        for h in np.unique(radius[crowd]):
+            sel, s = (crowd & (radius == h)).nonzero()[0], 2 * int(h) + 1
+            P = sliding_window_view(img, (s, s))[cv[sel] - h, cu[sel] - h].reshape(sel.size, s * s).astype(f32)
+            _mask_others(P, own[sel], _tables(s), s, f32(seg_dn))
+            boff[sel] = off + s * s * np.arange(sel.size)
+            off += P.size
+            chunks.append(P.ravel())
+        buf = np.concatenate(chunks)
+    out, n_sat, edge = measure_windows_kernel(img, cu, cv, radius, placed, float(seg_dn), float(full_dn), buf, boff)
+    K = detect_kernel
+    return _Measured(
+        uv=out[K.UV:K.UV + 2].T, ellipse=out[K.ELLIPSE:K.ELLIPSE + 5].T, flux=out[K.FLUX], level=out[K.LEVEL],
+        peak=out[K.PEAK], background=out[K.BACKGROUND], sb2=out[K.SB2], k_shot=out[K.K_SHOT],
+        var_base=out[K.VAR_BASE], var_per_k=out[K.VAR_PER_K], mismatch=out[K.MISMATCH], noise_bg=out[K.NOISE_BG],
+        m3sq=out[K.M3SQ], kurt=out[K.KURT], kurt_model=out[K.KURT_MODEL], flat_top=out[K.FLAT_TOP],
+        var_major=out[K.VAR_MAJOR], sums=out[K.SUMS:K.SUMS + 7].T, n_sat=n_sat, edge=edge, table=out), placed
 
 
 def _assess(meas: _Measured, usable: NDArray[np.bool_], settings: DetectSettings,
@@ -532,42 +426,18 @@ def _assess(meas: _Measured, usable: NDArray[np.bool_], settings: DetectSettings
     fill ``(A + Ae - m) / (A + Ae + m)`` of the blob's area ``A``, the ellipse's ``Ae`` and their
     mismatch ``m`` less what noise adds to it (``sqrt(2 / pi)`` sigma per pixel).
     """
-    a, b = meas.ellipse[:, 2], meas.ellipse[:, 3]
-    S, level, sb2, sums = meas.flux, meas.level, meas.sb2, meas.sums
-    with np.errstate(divide="ignore", invalid="ignore"):
-        area = S / level
-        levels = np.select(
-            [meas.n_sat > MAX_SATURATED_PX, ~((meas.peak - meas.background >= contrast_dn) & (level > 0)),
-             ~(area >= settings.min_area_px), ~(area <= settings.max_area_px)],
-            [_SATURATED, _LOW_CONTRAST, _TOO_SMALL, _TOO_BIG], -1)
-        plateau = (levels < 0) & usable & ~meas.edge & (b >= MIN_PLATEAU_B_PX)
-        k = float(np.median(meas.k_shot[plateau])) / 0.918 if plateau.any() else 0.0
-        sigma = np.sqrt(meas.var_base + k * meas.var_per_k)
-        tr, area_e = 2.0 * meas.var_per_k * S, np.pi * a * b
-        mis = np.maximum(meas.mismatch - meas.noise_bg - np.sqrt(2.0 / np.pi * (sb2 + k * level)) * area / level, 0)
-        fill = np.nan_to_num((area + area_e - mis) / (area + area_e + mis))
-        # pixel noise through the centred monomials (c0..c8 the window's sums, m the variance per axis)
-        c0, c2, c4, c22, c6, c42, c8 = sums.T
-        m = 0.5 * tr
-        bg3 = 2 * (c6 - 6 * m * c4 + 9 * m * m * c2) + 6 * (c42 - 2 * m * c22 + m * m * c2)
-        asym_noise = np.sqrt(sb2 * bg3 + k * S * (4.0 * m) ** 3 / 8.0) / S / (2.0 * tr)
-        m2, kap = meas.var_major, meas.kurt_model
-        al, be = 2 * kap * m2, kap * m2 * m2  # kurtosis' monomial: x^4 - al x^2 + be
-        bg4 = c8 - 2 * al * c6 + (al * al + 2 * be) * c4 - 2 * al * be * c2 + be * be * c0
-        q = a * a / 4.0  # moments of the disk's profile along its major axis: q, 2 q^2, 5 q^3, 14 q^4
-        shot4 = 14 * q**4 - 2 * al * 5 * q**3 + (al * al + 2 * be) * 2 * q * q - 2 * al * be * q + be * be
-        kurt_noise = np.sqrt(sb2 * bg4 + k * S * np.maximum(shot4, 0.0)) / (S * m2 * m2)
-        shape_ok = ((b * settings.max_aspect >= a) & (fill >= settings.min_fill) & (meas.flat_top >= MIN_FLAT_TOP)
-                    & (np.sqrt(meas.m3sq) / (2.0 * tr) <= SHAPE_SIGMA[0] * asym_noise + SHAPE_FLOOR[0])
-                    & (np.abs(meas.kurt - meas.kurt_model) <= SHAPE_SIGMA[1] * kurt_noise + SHAPE_FLOOR[1])
-                    & np.isfinite(meas.uv).all(axis=1))
-    return np.where(levels >= 0, levels, np.where(shape_ok, -1, _MISSHAPEN)), sigma, fill
+    limits = np.array([settings.min_area_px, settings.max_area_px, settings.max_aspect, settings.min_fill,
+                       MAX_SATURATED_PX, MIN_PLATEAU_B_PX, MIN_FLAT_TOP, *SHAPE_SIGMA, *SHAPE_FLOOR], dtype=f64)
+    codes = np.array([_SATURATED, _LOW_CONTRAST, _TOO_SMALL, _TOO_BIG, _MISSHAPEN], dtype=np.intp)
+    return assess_kernel(meas.table, meas.n_sat, meas.edge, usable, float(contrast_dn), limits, codes)
 
 
-def _blobs(meas: _Measured, index: NDArray[np.intp], sigma: Array, fill: Array) -> Blobs:
+def _blobs(meas: _Measured, index: NDArray[np.intp], sigma: Array, fill: Array,
+           has_ring: NDArray[np.bool_] | None = None) -> Blobs:
     return Blobs(uv=meas.uv[index], ellipse=meas.ellipse[index], sigma_px=sigma[index],
                  area_px=meas.flux[index] / meas.level[index], peak_dn=meas.peak[index],
-                 background_dn=meas.background[index], fill=fill[index])
+                 background_dn=meas.background[index], fill=fill[index],
+                 has_ring=np.zeros(index.size, dtype=bool) if has_ring is None else has_ring[index])
 
 
 def _windows(ct: _Contours, todo: NDArray[np.intp], near: Array, shape: tuple[int, int],
@@ -644,7 +514,10 @@ def detect_blobs(image: NDArray[np.generic],
     reason[todo], centre = wr, ct.centre.copy()
     centre[todo] = np.where(np.isfinite(meas.uv), meas.uv, centre[todo])
     rej = (reason >= 0).nonzero()[0]
-    return _blobs(meas, (wr < 0).nonzero()[0], sigma, fill), Rejections(reason[rej], box[rej], centre[rej])
+    ringed = np.zeros(reason.size, dtype=bool)
+    ringed[host_of[host_of >= 0]] = True
+    return (_blobs(meas, (wr < 0).nonzero()[0], sigma, fill, ringed[todo]),
+            Rejections(reason[rej], box[rej], centre[rej]))
 
 
 def measure_windows(image: NDArray[np.generic], uv_predicted: NDArray[np.float64],

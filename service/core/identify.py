@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 from service.core.camera_model import BrownFraser
 from service.core.field import Field
 from service.core.frames import apply_T, inv_T
+from service.core.geometry_kernels import eccentricity_kernel
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -120,29 +121,27 @@ def eccentricity_px(
     Subtract the result from measured centroids to get the image of the centre.
     """
     n = len(p_field)
-    normal = np.broadcast_to(DEFAULT_NORMAL_FIELD if normals_field is None else normals_field, (n, 3))
+    if normals_field is None:  # one plane for all: its axes once
+        normal = DEFAULT_NORMAL_FIELD[None, :]
+    else:
+        normal = np.broadcast_to(normals_field, (n, 3))
     # any in-plane axes will do: the conic of a circle does not depend on them
-    helper = np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    ex = np.cross(normal, helper)
+    nx, ny, nz = normal[:, 0], normal[:, 1], normal[:, 2]
+    zero = np.zeros_like(nx)
+    # normal x (1, 0, 0) or, for a normal near x, normal x (0, 1, 0); by hand: np.cross costs more here
+    ex = np.where((np.abs(nx) < 0.9)[:, None], np.stack([zero, nz, -ny], 1), np.stack([-nz, zero, nx], 1))
     ex /= np.linalg.norm(ex, axis=1, keepdims=True)
-    ey = np.cross(normal, ex)
+    ey = np.stack([ny * ex[:, 2] - nz * ex[:, 1], nz * ex[:, 0] - nx * ex[:, 2], nx * ex[:, 1] - ny * ex[:, 0]], 1)
+    # writable C arrays: one compiled kernel for every way the inputs come
+    ex, ey = (np.require(np.broadcast_to(a, (n, 3)), np.float64, ['C', 'W']) for a in (ex, ey))
     T_camera_field = inv_T(T_field_camera)
-    R = T_camera_field[:3, :3]
-    c = camera.c_mm
-    # homography plane (a, b, 1) -> ideal (x, y, 1), up to scale
-    H = np.empty((n, 3, 3))
-    H[:, :, 0] = ex @ R.T
-    H[:, :, 1] = ey @ R.T
-    H[:, :, 2] = apply_T(T_camera_field, p_field)
-    H[:, :2, :] *= c
-    Hinv = np.linalg.inv(H)
-    C0 = np.zeros((n, 3, 3))
-    C0[:, 0, 0] = 1.0
-    C0[:, 1, 1] = 1.0
-    C0[:, 2, 2] = -np.asarray(radius_mm, dtype=np.float64) ** 2
-    C = np.transpose(Hinv, (0, 2, 1)) @ C0 @ Hinv
-    centre = -np.linalg.solve(C[:, :2, :2], C[:, :2, 2:3])[:, :, 0]
-    image_of_centre = H[:, :2, 2] / H[:, 2:3, 2]
-    offset_mm = centre - image_of_centre
+    R = np.ascontiguousarray(T_camera_field[:3, :3])
+    p_camera = np.ascontiguousarray(apply_T(T_camera_field, np.asarray(p_field, dtype=np.float64)))
+    radius = np.require(np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (n,)), np.float64, ['C', 'W'])
+    offset_mm = eccentricity_kernel(ex, ey, p_camera, R, float(camera.c_mm), radius)
     J = camera.ideal_from_pixel_jacobian(uv)
-    return np.linalg.solve(J, offset_mm[:, :, None])[:, :, 0]
+    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+    out = np.empty((n, 2))
+    out[:, 0] = (J[:, 1, 1] * offset_mm[:, 0] - J[:, 0, 1] * offset_mm[:, 1]) / det
+    out[:, 1] = (J[:, 0, 0] * offset_mm[:, 1] - J[:, 1, 0] * offset_mm[:, 0]) / det
+    return out

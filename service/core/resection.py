@@ -28,6 +28,17 @@ from numpy.typing import ArrayLike, NDArray
 
 from service.core.camera_model import BrownFraser
 from service.core.frames import check_T, make_T
+from service.core.geometry_kernels import (
+    BEHIND,
+    CONVERGED,
+    NO_STEP,
+    SINGULAR,
+    adjust_kernel,
+    design_kernel,
+    normal_kernel,
+    point_statistics_kernel,
+    residuals_kernel,
+)
 from service.core.resection_closed_form import (
     check_geometry,
     check_observations,
@@ -139,12 +150,7 @@ def _inverse_2x2(J: Array) -> Array:
 
 def _residuals(R: Array, t: Array, p: Array, xy: Array, W: Array, c: float) -> tuple[Array, Array]:
     """Whitened residuals (n, 2) px and camera-frame points (n, 3) mm."""
-    pc = (p - t) @ R
-    iz = c / pc[:, 2]
-    e0, e1 = xy[:, 0] - pc[:, 0] * iz, xy[:, 1] - pc[:, 1] * iz
-    r = np.empty((len(p), 2))
-    r[:, 0] = W[:, 0, 0] * e0 + W[:, 0, 1] * e1
-    r[:, 1] = W[:, 1, 0] * e0 + W[:, 1, 1] * e1
+    r, pc, _, _ = residuals_kernel(np.ascontiguousarray(R), np.ascontiguousarray(t), p, xy, W, float(c))
     return r, pc
 
 
@@ -157,20 +163,7 @@ def _design(R: Array, t: Array, p: Array, W: Array, c: float, pc: Array) -> Arra
     for the rotation and ``-(c/Z) [1, 0, -xn]``, ``-(c/Z) [0, 1, -yn]`` for the
     centre; both blocks are then turned to field axes by R.
     """
-    iz = 1.0 / pc[:, 2]
-    xn, yn = pc[:, 0] * iz, pc[:, 1] * iz
-    ciz = c * iz
-    B = np.zeros((len(p), 2, 2, 3))  # point, image coordinate, [rotation, centre], axis
-    B[:, 0, 0] = np.column_stack([c * xn * yn, -c * (1.0 + xn * xn), c * yn])
-    B[:, 1, 0] = np.column_stack([c * (1.0 + yn * yn), -c * xn * yn, -c * xn])
-    B[:, 0, 1, 0] = B[:, 1, 1, 1] = -ciz
-    B[:, 0, 1, 2] = ciz * xn
-    B[:, 1, 1, 2] = ciz * yn
-    Bf = (B.reshape(-1, 3) @ R.T).reshape(len(p), 2, 6)  # field axes
-    A = np.empty_like(Bf)
-    A[:, 0] = W[:, 0, 0:1] * Bf[:, 0] + W[:, 0, 1:2] * Bf[:, 1]
-    A[:, 1] = W[:, 1, 0:1] * Bf[:, 0] + W[:, 1, 1:2] * Bf[:, 1]
-    return A
+    return design_kernel(np.ascontiguousarray(R), W, float(c), pc)
 
 
 def _adjust(
@@ -184,63 +177,21 @@ def _adjust(
     below 1e-10 of the scene's size, so they stand for the final pose (to
     ~1e-10 px) without another evaluation.
     """
-    R, t = T[:3, :3].copy(), T[:3, 3].copy()
-    r, pc = _residuals(R, t, p, xy, W, c)
-    cost = 0.5 * float(np.sum(r * r))
-    if not np.isfinite(cost):
+    R, t, it, r, pc, A3, outcome = adjust_kernel(
+        np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), p, xy, W, c, scale_mm, max_iter)
+    if outcome == BEHIND:
         raise SolveError(
             Reason.behind_camera,
             "The start pose puts a target in the camera's focal plane (Z = 0).",
         )
-    n_front = int(np.sum(pc[:, 2] > 0))
-    tol_mm = 1e-10 * scale_mm
-    lam = 0.0  # Marquardt's damping, relative to diag(N); 0 = Gauss-Newton
-    for it in range(1, max_iter + 1):
-        A3 = _design(R, t, p, W, c, pc)
-        A = A3.reshape(-1, 6)
-        N = A.T @ A
-        g = A.T @ r.reshape(-1)
-        D = np.diag(np.diag(N))
-        try:
-            delta = np.linalg.solve(N, g)
-        except np.linalg.LinAlgError:
-            delta = np.full(6, np.nan)
-        if not np.all(np.isfinite(delta)):
-            raise SolveError(
-                Reason.degenerate_geometry, "The resection's normal equations are singular."
-            )
-        if np.linalg.norm(delta[3:]) + scale_mm * np.linalg.norm(delta[:3]) < tol_mm:
-            return make_T(_rotation_from_rotvec(delta[:3]) @ R, t + delta[3:]), it, r, pc, A3, True
-        while True:
-            if lam > 0.0:
-                delta = np.linalg.solve(N + lam * D, g)
-            R_new = _rotation_from_rotvec(delta[:3]) @ R
-            t_new = t + delta[3:]
-            r_new, pc_new = _residuals(R_new, t_new, p, xy, W, c)
-            cost_new = 0.5 * float(np.sum(r_new * r_new))
-            predicted = float(delta @ g - 0.5 * delta @ N @ delta)
-            rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
-            # A step that puts more points behind the camera jumps across the
-            # singularity Z = 0 to a spurious solution: refuse it.
-            n_front_new = int(np.sum(pc_new[:, 2] > 0))
-            if np.isfinite(cost_new) and n_front_new >= n_front and (rho > 0 or cost_new <= cost):
-                break
-            lam = max(4.0 * lam, 1e-6)
-            if lam > 1e12:
-                raise SolveError(
-                    Reason.no_convergence, "The resection found no step that lowers its cost."
-                )
-        # Gain-ratio control of the damping: large residuals (gross errors not
-        # yet rejected) make Gauss-Newton zig-zag, damping restores descent.
-        if rho > 0.75:
-            lam = 0.0 if lam < 1e-6 else lam / 4.0
-        elif rho < 0.25:
-            lam = max(2.0 * lam, 1e-6)
-        if cost - cost_new <= 1e-12 * cost:
-            # Stationary cost: the step tolerance may be out of reach in a flat valley.
-            return make_T(R, t), it, r, pc, A3, True
-        R, t, r, pc, cost, n_front = R_new, t_new, r_new, pc_new, cost_new, n_front_new
-    return make_T(R, t), max_iter, r, pc, _design(R, t, p, W, c, pc), False
+    if outcome == SINGULAR:
+        raise SolveError(Reason.degenerate_geometry, "The resection's normal equations are singular.")
+    if outcome == NO_STEP:
+        raise SolveError(Reason.no_convergence, "The resection found no step that lowers its cost.")
+    # Gain-ratio control of the damping: large residuals (gross errors not yet rejected) make
+    # Gauss-Newton zig-zag, damping restores descent. A stationary cost counts as converged:
+    # the step tolerance may be out of reach in a flat valley.
+    return make_T(R, t), it, r, pc, A3, outcome == CONVERGED
 
 
 def _point_statistics(v: Array, A: Array, Qxx: Array, sign: float) -> tuple[Array, Array]:
@@ -249,14 +200,7 @@ def _point_statistics(v: Array, A: Array, Qxx: Array, sign: float) -> tuple[Arra
     ``sign = -1`` gives the cofactor of an adjusted point's residual, ``+1`` that
     of a point left out of the adjustment (its prediction error).
     """
-    AQ = A @ Qxx
-    q00 = 1.0 + sign * np.sum(AQ[:, 0] * A[:, 0], axis=1)
-    q01 = sign * np.sum(AQ[:, 0] * A[:, 1], axis=1)
-    q11 = 1.0 + sign * np.sum(AQ[:, 1] * A[:, 1], axis=1)
-    det = q00 * q11 - q01 * q01
-    with np.errstate(divide="ignore", invalid="ignore"):
-        T2 = (q11 * v[:, 0] ** 2 - 2 * q01 * v[:, 0] * v[:, 1] + q00 * v[:, 1] ** 2) / det
-    return T2, det
+    return point_statistics_kernel(v, A, Qxx, float(sign))
 
 
 def _scores(
@@ -345,7 +289,8 @@ def resect(
         ``no_convergence``, ``bad_input`` (non-finite values).
     """
     p, q = check_observations(p_field, uv)
-    n, c = len(p), camera.c_mm
+    p, q = (np.require(a, np.float64, ['C', 'W']) for a in (p, q))  # the one array type the kernels know
+    n, c = len(p), float(camera.c_mm)
     xy = camera.ideal_from_pixel(q)
     spread = check_geometry(p, xy)
     if T_field_camera_init is None:
@@ -365,7 +310,7 @@ def resect(
         idx = np.flatnonzero(inliers)
         T, it, v, pc, A, converged = _adjust(T, p[idx], xy[idx], W[idx], c, scale_mm, max_iter)
         n_iter += it
-        N = A.reshape(-1, 6).T @ A.reshape(-1, 6)
+        N = normal_kernel(A, v)[0]
         d = np.sqrt(np.diag(N))
         ev = np.linalg.eigvalsh(N / np.outer(d, d)) if np.all(d > 0) else np.zeros(6)
         if not ev[0] > 1e-12 * ev[-1]:

@@ -1,0 +1,325 @@
+"""Per-point loops of the resection and of target prediction, compiled (numba).
+
+Written as loops because each call handles a few hundred points many times
+per frame: the collinearity residuals and their Jacobian (the adjustment's
+inner loop), the data-snooping statistics, the disk centres' perspective
+offsets, and the inverse of the Brown/Fraser correction. As numpy
+expressions they cost tens of array passes per call, more than their
+arithmetic. The formulas are those of :mod:`service.core.resection`,
+:mod:`service.core.identify` and :mod:`service.core.camera_model`.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, error_model="numpy")
+def residuals_kernel(R, t, p, xy, W, c):
+    """Whitened residuals (n, 2) px, camera-frame points (n, 3) mm, ``sum(r**2)`` and the number of
+    points in front (Z > 0), for ``p_c = R^T (p - t)`` and ideal ``xy`` (n, 2) mm."""
+    n = p.shape[0]
+    r = np.empty((n, 2))
+    pc = np.empty((n, 3))
+    ss, n_front = 0.0, 0
+    for i in range(n):
+        d0, d1, d2 = p[i, 0] - t[0], p[i, 1] - t[1], p[i, 2] - t[2]
+        x = d0 * R[0, 0] + d1 * R[1, 0] + d2 * R[2, 0]
+        y = d0 * R[0, 1] + d1 * R[1, 1] + d2 * R[2, 1]
+        z = d0 * R[0, 2] + d1 * R[1, 2] + d2 * R[2, 2]
+        pc[i, 0], pc[i, 1], pc[i, 2] = x, y, z
+        iz = c / z
+        e0, e1 = xy[i, 0] - x * iz, xy[i, 1] - y * iz
+        r0 = W[i, 0, 0] * e0 + W[i, 0, 1] * e1
+        r1 = W[i, 1, 0] * e0 + W[i, 1, 1] * e1
+        r[i, 0], r[i, 1] = r0, r1
+        ss += r0 * r0 + r1 * r1
+        if z > 0:
+            n_front += 1
+    return r, pc, ss, n_front
+
+
+@njit(cache=True, error_model="numpy")
+def design_kernel(R, W, c, pc):
+    """Jacobian (n, 2, 6) of the whitened computed coordinates wrt [dθ, dt], field axes
+    (see ``resection._design``)."""
+    n = pc.shape[0]
+    A = np.empty((n, 2, 6))
+    b = np.empty((2, 6))
+    for i in range(n):
+        iz = 1.0 / pc[i, 2]
+        xn, yn = pc[i, 0] * iz, pc[i, 1] * iz
+        ciz = c * iz
+        # camera axes: rows u, v; columns rotation (3), centre (3)
+        cam0 = (c * xn * yn, -c * (1.0 + xn * xn), c * yn, -ciz, 0.0, ciz * xn)
+        cam1 = (c * (1.0 + yn * yn), -c * xn * yn, -c * xn, 0.0, -ciz, ciz * yn)
+        for blk in range(2):
+            o = 3 * blk
+            for k in range(3):  # field axes: R @ (camera-axes vector)
+                b[0, o + k] = R[k, 0] * cam0[o] + R[k, 1] * cam0[o + 1] + R[k, 2] * cam0[o + 2]
+                b[1, o + k] = R[k, 0] * cam1[o] + R[k, 1] * cam1[o + 1] + R[k, 2] * cam1[o + 2]
+        for j in range(6):
+            A[i, 0, j] = W[i, 0, 0] * b[0, j] + W[i, 0, 1] * b[1, j]
+            A[i, 1, j] = W[i, 1, 0] * b[0, j] + W[i, 1, 1] * b[1, j]
+    return A
+
+
+@njit(cache=True, error_model="numpy")
+def normal_kernel(A, r):
+    """Normal matrix ``A^T A`` (6, 6) and right-hand side ``A^T r`` (6,) over all points."""
+    N = np.zeros((6, 6))
+    g = np.zeros(6)
+    for i in range(A.shape[0]):
+        for k in range(2):
+            rk = r[i, k]
+            for a in range(6):
+                x = A[i, k, a]
+                g[a] += x * rk
+                for b in range(a, 6):
+                    N[a, b] += x * A[i, k, b]
+    for a in range(6):
+        for b in range(a):
+            N[a, b] = N[b, a]
+    return N, g
+
+
+@njit(cache=True, error_model="numpy")
+def point_statistics_kernel(v, A, Qxx, sign):
+    """Each point's ``v_i^T Q_i^-1 v_i`` and ``det Q_i`` (n,), ``Q_i = I + sign A_i Qxx A_i^T``."""
+    n = v.shape[0]
+    T2, det = np.empty(n), np.empty(n)
+    aq = np.empty((2, 6))
+    for i in range(n):
+        for k in range(2):
+            for b in range(6):
+                x = 0.0
+                for a in range(6):
+                    x += A[i, k, a] * Qxx[a, b]
+                aq[k, b] = x
+        q00 = q01 = q11 = 0.0
+        for b in range(6):
+            q00 += aq[0, b] * A[i, 0, b]
+            q01 += aq[0, b] * A[i, 1, b]
+            q11 += aq[1, b] * A[i, 1, b]
+        q00, q01, q11 = 1.0 + sign * q00, sign * q01, 1.0 + sign * q11
+        d = q00 * q11 - q01 * q01
+        det[i] = d
+        T2[i] = (q11 * v[i, 0] ** 2 - 2 * q01 * v[i, 0] * v[i, 1] + q00 * v[i, 1] ** 2) / d
+    return T2, det
+
+
+@njit(cache=True, error_model="numpy")
+def sensor_from_ideal_kernel(target, K1, K2, K3, P1, P2, B1, B2, max_iter):
+    """Newton inverse of the Brown/Fraser correction per point, relative to the principal point:
+    (n, 2) mm, each point until its step is below 1e-12 mm (see ``BrownFraser.sensor_from_ideal``)."""
+    n = target.shape[0]
+    out = np.empty((n, 2))
+    for i in range(n):
+        tx, ty = target[i, 0], target[i, 1]
+        xb, yb = tx, ty
+        for _ in range(max_iter):
+            r2 = xb * xb + yb * yb
+            radial = r2 * (K1 + r2 * (K2 + r2 * K3))
+            dx = xb * radial + P1 * (r2 + 2 * xb * xb) + 2 * P2 * xb * yb + B1 * xb + B2 * yb
+            dy = yb * radial + 2 * P1 * xb * yb + P2 * (r2 + 2 * yb * yb)
+            rx, ry = xb + dx - tx, yb + dy - ty
+            g = K1 + r2 * (2 * K2 + 3 * K3 * r2)
+            j00 = 1 + radial + 2 * xb * xb * g + 6 * P1 * xb + 2 * P2 * yb + B1
+            j01 = 2 * xb * yb * g + 2 * P1 * yb + 2 * P2 * xb + B2
+            j10 = 2 * xb * yb * g + 2 * P1 * yb + 2 * P2 * xb
+            j11 = 1 + radial + 2 * yb * yb * g + 2 * P1 * xb + 6 * P2 * yb
+            det = j00 * j11 - j01 * j10
+            sx, sy = (j11 * rx - j01 * ry) / det, (-j10 * rx + j00 * ry) / det
+            xb -= sx
+            yb -= sy
+            if abs(sx) < 1e-12 and abs(sy) < 1e-12:
+                break
+        out[i, 0], out[i, 1] = xb, yb
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def eccentricity_kernel(ex, ey, pc, R, c, radius):
+    """Offset (n, 2) mm, ideal coordinates, of each disk image's centre from the image of the
+    disk's centre: the centre of the conic ``H^-T diag(1, 1, -r^2) H^-1`` with ``H`` the homography
+    from the disk's plane (axes ``ex``, ``ey`` (n, 3), centre ``pc`` (n, 3) camera frame) to the
+    image. ``R`` is ``R_camera_field``."""
+    n = pc.shape[0]
+    out = np.empty((n, 2))
+    H = np.empty((3, 3))
+    Hi = np.empty((3, 3))
+    for i in range(n):
+        for k in range(3):
+            H[k, 0] = R[k, 0] * ex[i, 0] + R[k, 1] * ex[i, 1] + R[k, 2] * ex[i, 2]
+            H[k, 1] = R[k, 0] * ey[i, 0] + R[k, 1] * ey[i, 1] + R[k, 2] * ey[i, 2]
+            H[k, 2] = pc[i, k]
+        for j in range(3):
+            H[0, j] *= c
+            H[1, j] *= c
+        # the adjugate: the conic's centre does not depend on the inverse's scale
+        Hi[0, 0] = H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]
+        Hi[0, 1] = H[0, 2] * H[2, 1] - H[0, 1] * H[2, 2]
+        Hi[0, 2] = H[0, 1] * H[1, 2] - H[0, 2] * H[1, 1]
+        Hi[1, 0] = H[1, 2] * H[2, 0] - H[1, 0] * H[2, 2]
+        Hi[1, 1] = H[0, 0] * H[2, 2] - H[0, 2] * H[2, 0]
+        Hi[1, 2] = H[0, 2] * H[1, 0] - H[0, 0] * H[1, 2]
+        Hi[2, 0] = H[1, 0] * H[2, 1] - H[1, 1] * H[2, 0]
+        Hi[2, 1] = H[0, 1] * H[2, 0] - H[0, 0] * H[2, 1]
+        Hi[2, 2] = H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0]
+        r2 = radius[i] * radius[i]
+        # C = Hi^T diag(1, 1, -r2) Hi; only its first two rows are needed
+        c00 = Hi[0, 0] * Hi[0, 0] + Hi[1, 0] * Hi[1, 0] - r2 * Hi[2, 0] * Hi[2, 0]
+        c01 = Hi[0, 0] * Hi[0, 1] + Hi[1, 0] * Hi[1, 1] - r2 * Hi[2, 0] * Hi[2, 1]
+        c11 = Hi[0, 1] * Hi[0, 1] + Hi[1, 1] * Hi[1, 1] - r2 * Hi[2, 1] * Hi[2, 1]
+        c02 = Hi[0, 0] * Hi[0, 2] + Hi[1, 0] * Hi[1, 2] - r2 * Hi[2, 0] * Hi[2, 2]
+        c12 = Hi[0, 1] * Hi[0, 2] + Hi[1, 1] * Hi[1, 2] - r2 * Hi[2, 1] * Hi[2, 2]
+        det = c00 * c11 - c01 * c01
+        cx, cy = -(c11 * c02 - c01 * c12) / det, -(-c01 * c02 + c00 * c12) / det
+        out[i, 0] = cx - H[0, 2] / H[2, 2]
+        out[i, 1] = cy - H[1, 2] / H[2, 2]
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _solve6(N, g):
+    """``N x = g`` by Gaussian elimination with partial pivoting (LAPACK's gesv, unblocked);
+    NaN where N is singular."""
+    n = g.size
+    M = N.copy()
+    x = g.copy()
+    for k in range(n):
+        piv, big = k, abs(M[k, k])
+        for i in range(k + 1, n):
+            if abs(M[i, k]) > big:
+                piv, big = i, abs(M[i, k])
+        if big == 0.0:
+            x[:] = np.nan
+            return x
+        if piv != k:
+            for j in range(n):
+                M[k, j], M[piv, j] = M[piv, j], M[k, j]
+            x[k], x[piv] = x[piv], x[k]
+        for i in range(k + 1, n):
+            f = M[i, k] / M[k, k]
+            for j in range(k, n):
+                M[i, j] -= f * M[k, j]
+            x[i] -= f * x[k]
+    for k in range(n - 1, -1, -1):
+        s = x[k]
+        for j in range(k + 1, n):
+            s -= M[k, j] * x[j]
+        x[k] = s / M[k, k]
+    return x
+
+
+@njit(cache=True, error_model="numpy")
+def rotation_from_rotvec_kernel(w):
+    """Rodrigues' formula (3, 3)."""
+    theta = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    K2 = K @ K
+    if theta < 1e-8:
+        return np.eye(3) + K + 0.5 * K2
+    return np.eye(3) + (np.sin(theta) / theta) * K + ((1 - np.cos(theta)) / theta**2) * K2
+
+
+#: :func:`adjust_kernel`'s outcomes
+CONVERGED, MAX_ITER, BEHIND, SINGULAR, NO_STEP = 0, 1, 2, 3, 4
+
+
+@njit(cache=True, error_model="numpy")
+def adjust_kernel(R, t, p, xy, W, c, scale_mm, max_iter):
+    """Levenberg-Marquardt on the collinearity equations (see ``resection._adjust``).
+
+    Returns R (3, 3), t (3,), iterations, residuals (n, 2), camera-frame points (n, 3), design
+    (n, 2, 6) and the outcome (CONVERGED, MAX_ITER, BEHIND, SINGULAR, NO_STEP).
+    """
+    R, t = R.copy(), t.copy()
+    r, pc, ss, n_front = residuals_kernel(R, t, p, xy, W, c)
+    cost = 0.5 * ss
+    A3 = np.zeros((p.shape[0], 2, 6))
+    if not np.isfinite(cost):
+        return R, t, 0, r, pc, A3, BEHIND
+    tol_mm = 1e-10 * scale_mm
+    lam = 0.0  # Marquardt's damping, relative to diag(N); 0 = Gauss-Newton
+    for it in range(1, max_iter + 1):
+        A3 = design_kernel(R, W, c, pc)
+        N, g = normal_kernel(A3, r)
+        delta = _solve6(N, g)
+        if not np.all(np.isfinite(delta)):
+            return R, t, it, r, pc, A3, SINGULAR
+        step = np.sqrt(delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2)
+        turn = np.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2)
+        if step + scale_mm * turn < tol_mm:
+            return rotation_from_rotvec_kernel(delta[:3]) @ R, t + delta[3:], it, r, pc, A3, CONVERGED
+        while True:
+            if lam > 0.0:
+                Nl = N.copy()
+                for k in range(6):
+                    Nl[k, k] += lam * N[k, k]
+                delta = _solve6(Nl, g)
+            R_new = rotation_from_rotvec_kernel(delta[:3]) @ R
+            t_new = t + delta[3:]
+            r_new, pc_new, ss_new, n_front_new = residuals_kernel(R_new, t_new, p, xy, W, c)
+            cost_new = 0.5 * ss_new
+            predicted = delta @ g - 0.5 * delta @ (N @ delta)
+            rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
+            # a step that puts more points behind the camera jumps across Z = 0: refuse it
+            if np.isfinite(cost_new) and n_front_new >= n_front and (rho > 0 or cost_new <= cost):
+                break
+            lam = max(4.0 * lam, 1e-6)
+            if lam > 1e12:
+                return R, t, it, r, pc, A3, NO_STEP
+        if rho > 0.75:
+            lam = 0.0 if lam < 1e-6 else lam / 4.0
+        elif rho < 0.25:
+            lam = max(2.0 * lam, 1e-6)
+        if cost - cost_new <= 1e-12 * cost:
+            return R, t, it, r, pc, A3, CONVERGED
+        R, t, r, pc, cost, n_front = R_new, t_new, r_new, pc_new, cost_new, n_front_new
+    return R, t, max_iter, r, pc, design_kernel(R, W, c, pc), MAX_ITER
+
+
+@njit(cache=True, error_model="numpy")
+def correction_kernel(xb, yb, K1, K2, K3, P1, P2, B1, B2, jacobian):
+    """The Brown/Fraser correction (dx, dy) (n,) mm at (xb, yb) (n,) mm relative to the principal
+    point, and with ``jacobian`` also d(x, y)/d(x_bar, y_bar) (n, 2, 2) (see ``BrownFraser``)."""
+    n = xb.size
+    dx, dy = np.empty(n), np.empty(n)
+    J = np.empty((n if jacobian else 0, 2, 2))
+    for i in range(n):
+        x, y = xb[i], yb[i]
+        r2 = x * x + y * y
+        radial = r2 * (K1 + r2 * (K2 + r2 * K3))
+        dx[i] = x * radial + P1 * (r2 + 2 * x * x) + 2 * P2 * x * y + B1 * x + B2 * y
+        dy[i] = y * radial + 2 * P1 * x * y + P2 * (r2 + 2 * y * y)
+        if jacobian:
+            g = K1 + r2 * (2 * K2 + 3 * K3 * r2)
+            J[i, 0, 0] = 1 + radial + 2 * x * x * g + 6 * P1 * x + 2 * P2 * y + B1
+            J[i, 0, 1] = 2 * x * y * g + 2 * P1 * y + 2 * P2 * x + B2
+            J[i, 1, 0] = 2 * x * y * g + 2 * P1 * y + 2 * P2 * x
+            J[i, 1, 1] = 1 + radial + 2 * y * y * g + 2 * P1 * x + 6 * P2 * y
+    return dx, dy, J
+
+
+@lru_cache(maxsize=1)  # once per process
+def warm_up() -> None:
+    """Compile (or load from numba's cache) every kernel here for the types the product passes,
+    so that no frame pays for it. Cheap after the first call in a process."""
+    p = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0], [100.0, 100.0, 10.0]])
+    xy = np.zeros((4, 2))
+    W = np.repeat(np.eye(2)[None], 4, axis=0)
+    R, t = np.eye(3), np.array([0.0, 0.0, -1000.0])
+    r, pc, _, _ = residuals_kernel(R, t, p, xy, W, 12.0)
+    A = design_kernel(R, W, 12.0, pc)
+    N, _ = normal_kernel(A, r)
+    point_statistics_kernel(r, A, np.eye(6), -1.0)
+    adjust_kernel(R, t, p, xy, W, 12.0, 1000.0, 2)
+    rotation_from_rotvec_kernel(np.zeros(3))
+    sensor_from_ideal_kernel(xy, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20)
+    correction_kernel(xy[:, 0].copy(), xy[:, 1].copy(), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, True)
+    eccentricity_kernel(np.tile([1.0, 0.0, 0.0], (4, 1)), np.tile([0.0, 1.0, 0.0], (4, 1)), pc, R, 12.0,
+                        np.full(4, 3.0))
