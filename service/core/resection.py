@@ -16,7 +16,8 @@ costs and sigma0 are in pixels of the distorted image (to first order, i.e. to
 far below 1e-3 px at sub-pixel residuals). The adjustment is written by hand,
 not handed to ``scipy.optimize``: it is the product's core method, it runs per
 frame at >= 1 kHz with ~230 points, and a generic solver's overhead would exceed
-its arithmetic.
+its arithmetic. Its per-point loops and the Levenberg-Marquardt iteration are
+compiled (:mod:`service.core.geometry_kernels`).
 """
 
 from __future__ import annotations
@@ -126,15 +127,6 @@ def _check_pose(T_field_camera: ArrayLike) -> Array:
 
 
 # -- closed form ----------------------------------------------------------------
-
-
-def _rotation_from_rotvec(w: Array) -> Array:
-    """Rodrigues' formula; inline because scipy's Rotation costs more than the whole step."""
-    theta = np.sqrt(w @ w)
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if theta < 1e-8:
-        return np.eye(3) + K + 0.5 * K @ K
-    return np.eye(3) + (np.sin(theta) / theta) * K + ((1 - np.cos(theta)) / theta**2) * (K @ K)
 
 
 def _inverse_2x2(J: Array) -> Array:
