@@ -263,12 +263,13 @@ class FrameMeasurer:
     def _window_half_size(self, rows: NDArray[np.int64], T_field_camera: Array, slack: float = 1.0) -> NDArray[np.int64]:
         """Half window (px) per target: the disk's image radius, the blur, and the prediction error.
 
-        A coded target's window stays inside its dark gap (the ring starts at 2 R).
+        A coded target's window stays inside its dark gap (the ring starts at 2 R; the
+        square window's corners and the blur need the margin).
         """
         s = self.settings
         depth = np.abs((self.field.xyz[rows] - T_field_camera[:3, 3]) @ T_field_camera[:3, 2])
         r_px = self._radius_mm[rows] * self.camera.c_mm / np.maximum(depth, 1.0) / self.camera.mean_pixel_size_mm
         half = np.ceil(r_px + 3.0 + slack * s.roi_prediction_error_px)
         coded = self.field.codes[rows] >= 0
-        half[coded] = np.minimum(half[coded], np.floor(2.0 * r_px[coded] - 2.0))
+        half[coded] = np.minimum(half[coded], np.floor(2.0 * r_px[coded] - 4.0))
         return np.maximum(half, 3).astype(np.int64)
