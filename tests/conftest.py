@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from service.core.camera_model import BrownFraser
+from service.sim import scene
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -22,22 +23,8 @@ def shared_data(name: str) -> Path:
 
 @pytest.fixture
 def reference_camera() -> BrownFraser:
-    """1300x1030 px, 6.7 um pixels, c = 12 mm, with distortion of a real 12 mm lens."""
-    return BrownFraser(
-        width=1300,
-        height=1030,
-        pixel_size_mm=(0.0067, 0.0067),
-        c_mm=12.0,
-        x0_mm=0.031,
-        y0_mm=-0.024,
-        K1=-1.1e-3,
-        K2=3.0e-6,
-        K3=-1.0e-8,
-        P1=2.0e-5,
-        P2=-1.5e-5,
-        B1=1.0e-4,
-        B2=-5.0e-5,
-    )
+    """1300x1030 px, 6.7 um pixels, c = 12 mm, with distortion of a real 12 mm lens (DESIGN section 7)."""
+    return scene.reference_camera()
 
 
 @pytest.fixture
