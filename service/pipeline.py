@@ -89,6 +89,7 @@ class MeasureSettings:
     roi: bool = True
     roi_min_fraction: float = 0.7  # of predicted targets found, else full frame
     roi_max_sigma0_px: float = 0.3
+    roi_refine: bool = True  # two-stage ROI: slower, but as precise as the full frame
     roi_prediction_error_px: float = 4.0  # how far a target may move from its constant-velocity prediction
     max_sigma0_px: float = 0.5
     code_family: CodeFamily = POSECELL12  # the coded targets' ring code (codes.AICON14 for AICON plates)
@@ -243,6 +244,23 @@ class FrameMeasurer:
         rows, uv_pred = project_field(self.camera, self.field, T_pred, margin_px=4.0)
         if len(rows) < s.min_targets:
             return None
+        if s.roi_refine:
+            # stage 1: locate the uncoded targets in generous windows and re-solve the pose, so
+            # that stage 2 can measure every target (coded ones too, whose windows must stay
+            # inside the ring's gap) in tight windows around precise predictions
+            uncoded = self.field.codes[rows] < 0
+            half = self._window_half_size(rows[uncoded], T_pred, slack)
+            try:
+                blobs, found = measure_windows(image, uv_pred[uncoded], half, s.detect)
+                ok = found >= 0
+                if ok.sum() < max(s.min_targets, s.roi_min_fraction * uncoded.sum()):
+                    return None
+                T_pred = resect(self.camera, self.field.xyz[rows[uncoded][ok]], blobs.uv[found[ok]],
+                                sigma_px=s.sigma_px, T_field_camera_init=T_pred).T_field_camera
+            except (ValueError, SolveError):
+                return None
+            rows, uv_pred = project_field(self.camera, self.field, T_pred, margin_px=4.0)
+            slack = 0.25
         half = self._window_half_size(rows, T_pred, slack)
         try:
             blobs, found = measure_windows(image, uv_pred, half, s.detect)
