@@ -250,6 +250,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--blur-px", type=float, default=0.6)
     sim.set_defaults(func=cmd_simulate)
 
+    from service.targets_sheet import SheetOptions
+
+    sheet = SheetOptions()  # the CLI's defaults are the library's, so the two cannot drift
     tg = sub.add_parser("targets", help="target sheets").add_subparsers(dest="what", metavar="WHAT")
     tg.required = True
     sh = tg.add_parser(
@@ -261,17 +264,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sh.add_argument("--svg", required=True, help="output SVG")
     sh.add_argument("--field", required=True, help="output field.json")
-    sh.add_argument("--width-mm", type=float, default=720.0)
-    sh.add_argument("--height-mm", type=float, default=580.0)
-    sh.add_argument("--coded", type=int, default=30, help="number of coded targets")
-    sh.add_argument("--uncoded", type=int, default=200, help="number of uncoded targets")
-    sh.add_argument("--coded-diameter-mm", type=float, default=10.0)
-    sh.add_argument("--uncoded-diameter-mm", type=float, default=6.0)
-    sh.add_argument("--margin-mm", type=float, default=40.0)
-    sh.add_argument("--clearance-mm", type=float, default=5.0)
-    sh.add_argument("--first-code", type=int, default=1)
-    sh.add_argument("--title", default="posecell target sheet")
-    sh.add_argument("--name", default="posecell-sheet", help="the field's name")
+    sh.add_argument("--width-mm", type=float, default=sheet.width_mm)
+    sh.add_argument("--height-mm", type=float, default=sheet.height_mm)
+    sh.add_argument("--coded", type=int, default=sheet.n_coded, help="number of coded targets")
+    sh.add_argument("--uncoded", type=int, default=sheet.n_uncoded, help="number of uncoded targets")
+    sh.add_argument("--coded-diameter-mm", type=float, default=sheet.coded_diameter_mm)
+    sh.add_argument("--uncoded-diameter-mm", type=float, default=sheet.uncoded_diameter_mm)
+    sh.add_argument("--margin-mm", type=float, default=sheet.margin_mm)
+    sh.add_argument("--clearance-mm", type=float, default=sheet.clearance_mm)
+    sh.add_argument("--first-code", type=int, default=sheet.first_code)
+    sh.add_argument("--title", default=sheet.title)
+    sh.add_argument("--name", default=sheet.name, help="the field's name")
     sh.add_argument("--seed", type=int, default=None, help="jitter the uncoded grid with this seed")
     sh.add_argument("--ruler-mm", type=float, default=None, help="length of the drawn scale bar")
     sh.add_argument("--no-labels", action="store_true", help="do not print target ids")
