@@ -11,7 +11,8 @@ cd "$repo"
 venv="$repo/.venv"
 
 # Debian packages the project needs at run or test time (kept in one place).
-apt_packages=(python3 python3-venv python3-dev gcc)
+# python3-gi + gir1.2-aravis-0.8: the Aravis GigE Vision driver and its loopback stand-in camera.
+apt_packages=(python3 python3-venv python3-dev gcc python3-gi gir1.2-aravis-0.8)
 
 as_root() {
     if [ "$(id -u)" -eq 0 ]; then "$@"; else sudo "$@"; fi
@@ -39,7 +40,17 @@ install_venv() {
     [ -x "$venv/bin/python" ] || python3 -m venv "$venv"
     "$venv/bin/python" -m pip install -q --upgrade pip
     "$venv/bin/python" -m pip install -q -e ".[test]"
+    link_gi
     echo "$want" > "$stamp"
+}
+
+# PyGObject is not built from PyPI (it needs the GObject dev stack); Debian's python3-gi is built
+# for CPython 3.11, the venv's version, so the venv sees exactly that one package and nothing else
+# from the system site-packages.
+link_gi() {
+    local site
+    site=$("$venv/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
+    [ -e "$site/gi" ] || ln -s /usr/lib/python3/dist-packages/gi "$site/gi"
 }
 
 setup() {

@@ -1,0 +1,87 @@
+"""A time-indexed ring buffer of robot samples, shared by the robot drivers.
+
+One reader thread appends, the worker queries; a lock keeps a query from
+seeing half a sample. Preallocated arrays: at 500 Hz a 10 s history is 5000
+poses, appended without allocation and searched by bisection.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from drivers.base import RobotSample
+
+
+class RobotHistory:
+    """The last ``capacity`` samples in arrival order (``t_host_ns`` must not decrease)."""
+
+    def __init__(self, capacity: int, n_joints: int = 6) -> None:
+        if capacity < 2:
+            raise ValueError("a robot history needs room for at least 2 samples")
+        self.capacity = capacity
+        self._t_host = np.zeros(capacity, dtype=np.int64)
+        self._t_robot = np.full(capacity, np.nan)
+        self._T = np.zeros((capacity, 4, 4))
+        self._q = np.zeros((capacity, n_joints))
+        self._n = 0  # samples ever appended
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return min(self._n, self.capacity)
+
+    @property
+    def n_total(self) -> int:
+        return self._n
+
+    def append(self, sample: RobotSample) -> None:
+        with self._lock:
+            if self._n and sample.t_host_ns < self._t_host[(self._n - 1) % self.capacity]:
+                return  # out of order (a clock step): dropped, never reorders the buffer
+            i = self._n % self.capacity
+            self._t_host[i] = sample.t_host_ns
+            self._t_robot[i] = np.nan if sample.t_robot_s is None else sample.t_robot_s
+            self._T[i] = sample.T_base_flange
+            self._q[i] = sample.q_rad
+            self._n += 1
+
+    def clear(self) -> None:
+        with self._lock:
+            self._n = 0
+
+    def _sample(self, i: int) -> RobotSample:
+        t_robot = float(self._t_robot[i])
+        return RobotSample(
+            T_base_flange=self._T[i].copy(),
+            q_rad=self._q[i].copy(),
+            t_host_ns=int(self._t_host[i]),
+            t_robot_s=None if np.isnan(t_robot) else t_robot,
+        )
+
+    def latest(self) -> RobotSample | None:
+        with self._lock:
+            return self._sample((self._n - 1) % self.capacity) if self._n else None
+
+    def _ordered_indices(self) -> np.ndarray:
+        n = len(self)
+        start = self._n - n
+        return (np.arange(start, self._n) % self.capacity).astype(np.intp)
+
+    def samples_between(self, t0_host_ns: int, t1_host_ns: int) -> list[RobotSample]:
+        with self._lock:
+            idx = self._ordered_indices()
+            t = self._t_host[idx]
+            lo = int(np.searchsorted(t, t0_host_ns, side="left"))
+            hi = int(np.searchsorted(t, t1_host_ns, side="right"))
+            return [self._sample(int(i)) for i in idx[lo:hi]]
+
+    def arrays_between(self, t0_host_ns: int, t1_host_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(t_host_ns (K,), t_robot_s (K,), T_base_flange (K, 4, 4)) copies, for vectorised pairing."""
+        with self._lock:
+            idx = self._ordered_indices()
+            t = self._t_host[idx]
+            lo = int(np.searchsorted(t, t0_host_ns, side="left"))
+            hi = int(np.searchsorted(t, t1_host_ns, side="right"))
+            sel = idx[lo:hi]
+            return self._t_host[sel].copy(), self._t_robot[sel].copy(), self._T[sel].copy()

@@ -1,0 +1,152 @@
+"""The simulated robot controller: the simulated cell's arm, reported at a fixed rate.
+
+A reader thread produces a sample every controller tick, as RTDE does: the
+*nominal* flange pose of the (noisy) encoder joints, the controller's own
+timestamp (seconds since its start, on a clock with an offset and a drift
+against the host), and an arrival time ``latency_s`` (+ exponential jitter)
+after the tick. The camera of the same cell sees the *true* pose, so the
+difference is the robot model error posecell is there to measure.
+
+``unplug()`` / ``plug()`` drop and restore the link for tests and the demo.
+Not modelled: the controller's interpolation between ticks, speed scaling,
+protective stops.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from drivers.base import DriverDisconnected, DriverInitError, RobotInfo, RobotSample
+from drivers.history import RobotHistory
+from service.sim.cell import CellConfig, SimCell
+
+STALE_S = 0.5  # a newest sample older than this means the link is down
+
+
+class SimRobot:
+    """A robot of the simulated cell (see the module docstring).
+
+    Parameters
+    ----------
+    cell : the shared simulated cell (the camera driver must see the same one)
+    epoch_ns : host monotonic time of the cell's t = 0, shared with the camera driver
+    rate_hz : controller reporting rate (RTDE: 125 or 500 Hz)
+    """
+
+    def __init__(
+        self,
+        cell: SimCell | None = None,
+        cell_config: dict[str, object] | None = None,
+        epoch_ns: int | None = None,
+        rate_hz: float = 500.0,
+        latency_s: float = 0.001,
+        jitter_s: float = 0.0002,
+        clock_offset_s: float = 86.0,
+        clock_drift_ppm: float = -20.0,
+        history_s: float = 10.0,
+        seed: int = 2,
+    ) -> None:
+        self._cell = cell if cell is not None else SimCell(CellConfig(**(cell_config or {})))
+        self.epoch_ns = time.monotonic_ns() if epoch_ns is None else int(epoch_ns)
+        self.rate_hz = float(rate_hz)
+        self.latency_ns = int(latency_s * 1e9)
+        self.jitter_ns = float(jitter_s * 1e9)
+        self.clock_offset_s = clock_offset_s
+        self.clock_rate = 1.0 + clock_drift_ppm * 1e-6
+        self._rng = np.random.default_rng(seed)
+        self._history = RobotHistory(max(2, int(history_s * rate_hz)))
+        self._plugged = True
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    @property
+    def info(self) -> RobotInfo:
+        model = f"simulated {self._cell.config.robot}"
+        return RobotInfo(driver="sim", model=model, address="sim", rate_hz=self.rate_hz)
+
+    @property
+    def cell(self) -> SimCell:
+        return self._cell
+
+    @property
+    def history(self) -> RobotHistory:
+        return self._history
+
+    @property
+    def connected(self) -> bool:
+        latest = self._history.latest()
+        return (
+            self._plugged
+            and self._thread is not None
+            and latest is not None
+            and time.monotonic_ns() - latest.t_host_ns < STALE_S * 1e9
+        )
+
+    def open(self) -> None:
+        if not self._plugged:
+            raise DriverInitError("simulated robot controller is unplugged")
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="sim-robot", daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + 2.0
+        while self._history.latest() is None:
+            if time.monotonic() > deadline:
+                self.close()
+                raise DriverInitError("simulated robot controller produced no sample within 2 s")
+            time.sleep(0.001)
+
+    def latest(self) -> RobotSample:
+        sample = self._history.latest()
+        if not self._plugged or sample is None or time.monotonic_ns() - sample.t_host_ns > STALE_S * 1e9:
+            raise DriverDisconnected("the simulated robot controller does not answer")
+        return sample
+
+    def samples_between(self, t0_host_ns: int, t1_host_ns: int) -> list[RobotSample]:
+        return self._history.samples_between(t0_host_ns, t1_host_ns)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self._thread = None
+
+    def unplug(self) -> None:
+        self._plugged = False
+
+    def plug(self) -> None:
+        self._plugged = True
+
+    # --- the controller ---------------------------------------------------------------------
+
+    def _run(self) -> None:
+        period_ns = int(1e9 / self.rate_hz)
+        k = (time.monotonic_ns() - self.epoch_ns) // period_ns + 1
+        pending: list[tuple[int, tuple[np.ndarray, np.ndarray, float, float]]] = []  # reports in flight
+        while not self._stop.is_set():
+            now = time.monotonic_ns()
+            if now - (self.epoch_ns + k * period_ns) > 100_000_000:  # fell far behind (busy machine)
+                k = (now - self.epoch_ns) // period_ns
+            while self.epoch_ns + k * period_ns <= now:
+                t_tick_ns = self.epoch_ns + k * period_ns
+                t_cell_s = (t_tick_ns - self.epoch_ns) * 1e-9
+                T_nominal, q_measured = self._cell.robot_report(t_cell_s, self._rng)
+                arrival = t_tick_ns + self.latency_ns + int(self._rng.exponential(self.jitter_ns))
+                t_robot_s = (t_tick_ns * 1e-9 - self.clock_offset_s) * self.clock_rate
+                pending.append((arrival, (T_nominal, q_measured, t_robot_s, t_cell_s)))
+                k += 1
+            pending.sort(key=lambda p: p[0])
+            while pending and pending[0][0] <= now:
+                _, (T, q, t_robot_s, t_cell_s) = pending.pop(0)
+                if self._plugged:  # stamped on receipt, like a real reader thread (scheduling jitter included)
+                    self._history.append(RobotSample(T, q, time.monotonic_ns(), t_robot_s, {"t_cell_s": t_cell_s}))
+            wake = self.epoch_ns + k * period_ns
+            if pending:
+                wake = min(wake, pending[0][0])
+            delay = (wake - time.monotonic_ns()) * 1e-9
+            if delay > 0:
+                self._stop.wait(delay)
