@@ -16,10 +16,13 @@ import enum
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from drivers.history import RobotHistory
 
 _EMPTY: Mapping[str, Any] = MappingProxyType({})
 
@@ -193,6 +196,10 @@ class RobotDriver(Protocol):
 
     @property
     def connected(self) -> bool: ...
+
+    @property
+    def history(self) -> RobotHistory:
+        """The time-indexed ring buffer the reader fills (pairing interpolates in it)."""
 
     def open(self) -> None:
         """Connect and start reading; raises ``DriverInitError``/``DriverUnavailable``."""

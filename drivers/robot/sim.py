@@ -102,6 +102,8 @@ class SimRobot:
 
     def latest(self) -> RobotSample:
         sample = self._history.latest()
+        if self._thread is None:
+            raise DriverDisconnected("the simulated robot controller is not open")
         if not self._plugged or sample is None or time.monotonic_ns() - sample.t_host_ns > STALE_S * 1e9:
             raise DriverDisconnected("the simulated robot controller does not answer")
         return sample
