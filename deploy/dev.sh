@@ -62,8 +62,7 @@ cmd=${1:-help}
 shift || true
 case "$cmd" in
     setup) setup ;;
-    # until the HTTP service exists (issue 5), "serve" runs the simulated cell demo
-    serve) setup; exec "$venv/bin/posecell" demo "$@" ;;
+    serve) setup; exec "$venv/bin/posecell" serve "$@" ;;
     test)
         setup
         exec "$venv/bin/python" -m pytest "$@"

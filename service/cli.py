@@ -11,6 +11,7 @@ import dataclasses
 import json
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 from service import formats
@@ -111,8 +112,8 @@ def cmd_measure(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from service.simulate import write_dataset
     from service.sim.render import RenderSettings
+    from service.simulate import write_dataset
 
     settings = RenderSettings(bit_depth=args.bit_depth, hot_spot_dn=args.hot_spot_dn,
                               read_noise_dn=args.read_noise_dn, blur_sigma_px=args.blur_px)
@@ -156,6 +157,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(n_frames=args.frames, rate_hz=args.rate_hz, laps=args.laps, seed=args.seed)
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    from api.serve import run_serve
+
+    return run_serve(args.config, args.host, args.port, args.state_dir)
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from service.bench import run_bench
 
@@ -172,6 +179,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="verb", metavar="VERB")
     sub.required = True
+
+    sv = sub.add_parser(
+        "serve",
+        help="run the measurement service (REST + WebSocket API)",
+        description="Runs the measurement service: cameras, robot, processing worker and the HTTP API "
+        "(docs at /docs). With no --config it runs the simulated cell on 127.0.0.1:8000. Every "
+        "setting can also come from the environment, e.g. POSECELL_SERVER__PORT=8080.",
+    )
+    sv.add_argument("--config", type=Path, help="TOML configuration (see deploy/posecell.example.toml)")
+    sv.add_argument("--host", help="address to bind (default from the config: 127.0.0.1)")
+    sv.add_argument("--port", type=int, help="TCP port (default from the config: 8000)")
+    sv.add_argument("--state-dir", type=Path, help="measurements database, calibrations and API token")
+    sv.set_defaults(func=cmd_serve)
 
     r = sub.add_parser(
         "resect",

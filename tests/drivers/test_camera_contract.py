@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import time
 
 import numpy as np
@@ -45,11 +46,11 @@ def test_free_run_frames_are_owned_grey_images_with_increasing_times(camera):
         assert f.image.flags.owndata or f.image.base is None or f.image.flags.c_contiguous
         assert f.exposure_us == pytest.approx(2000.0, rel=0.05)
     t_host = [f.t_host_ns for f in frames]
-    assert all(b > a for a, b in zip(t_host, t_host[1:]))
+    assert all(b > a for a, b in itertools.pairwise(t_host))
     assert abs(t_host[-1] - time.monotonic_ns()) < 2e9
     if frames[0].t_device_ns is not None:
         t_dev = [f.t_device_ns for f in frames]
-        assert all(b > a for a, b in zip(t_dev, t_dev[1:]))
+        assert all(b > a for a, b in itertools.pairwise(t_dev))
     # owned: changing one frame's pixels cannot change another's
     frames[0].image[:] = 0
     assert frames[1].image.any()

@@ -1,0 +1,97 @@
+"""``create_app(settings)``: the FastAPI application of one cell (no import-time globals).
+
+The lifespan opens the stores, starts the worker (which brings the devices up
+in its own threads, so the HTTP side answers at once and reports progress in
+``/health``), binds the WebSocket hub to the event loop, and undoes each step
+in reverse order on shutdown (one ``AsyncExitStack``). ``READY=1`` goes to
+systemd once HTTP is up; device states are reported through ``/health``
+rather than by failing the start (a camera that is unplugged at boot must not
+put the unit into a restart loop).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import socket
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.staticfiles import StaticFiles
+
+from api import errors
+from api.routes import calibration, config, data, health, measure
+from api.routes.config import load_runtime_overrides
+from api.security import resolve_token
+from api.ws import Hub
+from service.calibration_state import CalibrationState
+from service.calibstore import CalibrationStore
+from service.settings import Settings, with_runtime_overrides
+from service.storage import MeasurementStore
+from service.worker import Worker
+
+log = logging.getLogger(__name__)
+STATIC = Path(__file__).parent / "static"
+
+
+def _notify_systemd(message: str) -> None:
+    """sd_notify without a dependency: one datagram to $NOTIFY_SOCKET, if systemd gave one."""
+    address = os.environ.get("NOTIFY_SOCKET")
+    if not address:
+        return
+    if address.startswith("@"):
+        address = "\0" + address[1:]
+    with contextlib.suppress(OSError), socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
+        s.sendto(message.encode(), address)
+
+
+def create_app(settings: Settings) -> FastAPI:
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        async with contextlib.AsyncExitStack() as stack:
+            state_dir = settings.resolved_state_dir()
+            state_dir.mkdir(parents=True, exist_ok=True)
+            runtime = with_runtime_overrides(settings, load_runtime_overrides(state_dir))
+            settings.cameras, settings.processing = runtime.cameras, runtime.processing
+            app.state.token = resolve_token(settings.server.token, state_dir)
+            store = MeasurementStore(
+                state_dir / settings.storage.database, retention_days=settings.storage.retention_days
+            )
+            store.start()
+            stack.callback(store.close)
+            calib_store = CalibrationStore(state_dir / "calibration")
+            worker = Worker(settings, store)
+            # loading calibrations may build the simulated cell (a second); keep the loop free
+            worker.calibration = await asyncio.to_thread(CalibrationState, settings, calib_store, worker.cell)
+            hub = Hub()
+            hub.bind(asyncio.get_running_loop())
+            app.state.worker, app.state.store, app.state.hub = worker, store, hub
+            app.state.calib_store = calib_store
+            await asyncio.to_thread(worker.start)
+            stack.push_async_callback(asyncio.to_thread, worker.stop)
+            stack.callback(worker.subscribe(hub.publish_threadsafe))
+            _notify_systemd("READY=1")
+            stack.callback(_notify_systemd, "STOPPING=1")
+            log.info("posecell serving on %s:%s", settings.server.host, settings.server.port)
+            yield
+
+    app = FastAPI(
+        title="posecell",
+        summary="Real-time photogrammetric robot pose measurement",
+        version="0.1.0",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    errors.install(app)
+    if settings.server.cors_origins:
+        app.add_middleware(CORSMiddleware, allow_origins=settings.server.cors_origins, allow_methods=["*"],
+                           allow_headers=["*"])
+    for module in (health, measure, data, config, calibration):
+        app.include_router(module.router)
+    if STATIC.is_dir():
+        app.mount("/", StaticFiles(directory=STATIC, html=True), name="dashboard")
+    return app

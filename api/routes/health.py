@@ -1,0 +1,39 @@
+"""Liveness, status and Prometheus metrics."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Request
+from fastapi.responses import PlainTextResponse
+
+from api.deps import HubDep, WorkerDep
+from api.metrics import prometheus_text
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/health", summary="Liveness, device and calibration states, rates, latency, dropped messages")
+def get_health(worker: WorkerDep, hub: HubDep) -> dict[str, Any]:
+    h = worker.health()
+    h["websocket"] = hub.stats()
+    return h
+
+
+@router.get("/status", summary="Health plus the configuration in use and the newest result of each camera")
+def get_status(request: Request, worker: WorkerDep, hub: HubDep) -> dict[str, Any]:
+    s = request.app.state.settings
+    latest = {
+        name: {k: r.get(k) for k in ("ok", "reason", "mode", "t_wall", "rms_px", "n_coded", "n_uncoded", "deviation")}
+        for name, r in worker.latest.items()
+    }
+    return {
+        **get_health(worker, hub),
+        "config": s.model_dump(mode="json", exclude={"server": {"token"}}),
+        "latest": latest,
+    }
+
+
+@router.get("/metrics", response_class=PlainTextResponse, summary="Prometheus text exposition")
+def get_metrics(worker: WorkerDep, hub: HubDep) -> PlainTextResponse:
+    return PlainTextResponse(prometheus_text(worker, hub), media_type="text/plain; version=0.0.4; charset=utf-8")

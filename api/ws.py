@@ -1,0 +1,78 @@
+"""The ``/ws/poses`` fan-out: every client has its own bounded queue (Prefect style).
+
+The worker calls ``Hub.publish_threadsafe`` from its processing thread; the
+result is serialised once and handed to the event loop. A client whose queue is
+full loses its *oldest* message (the newest pose matters most), the loss is
+counted per client and in ``/health``, and neither the worker nor the other
+clients ever wait for a slow client.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(eq=False)
+class Client:
+    queue: asyncio.Queue[str]
+    camera: str | None = None
+    min_interval_ns: int = 0  # decimation: at most one message per interval
+    last_sent_ns: dict[str, int] = field(default_factory=dict)
+    dropped: int = 0
+    sent: int = 0
+
+
+class Hub:
+    def __init__(self, queue_size: int = 32) -> None:
+        self.queue_size = queue_size
+        self.clients: set[Client] = set()
+        self.dropped_total = 0
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    def bind(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._loop = loop
+
+    def add(self, camera: str | None, max_rate_hz: float | None) -> Client:
+        interval = int(1e9 / max_rate_hz) if max_rate_hz else 0
+        client = Client(asyncio.Queue(self.queue_size), camera, interval)
+        self.clients.add(client)
+        return client
+
+    def remove(self, client: Client) -> None:
+        self.clients.discard(client)
+
+    def publish_threadsafe(self, result: dict[str, Any]) -> None:
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+        text = json.dumps(result, separators=(",", ":"))
+        meta = (result.get("camera"), int(result.get("t_exposure_host_ns", 0)))
+        try:
+            loop.call_soon_threadsafe(self._publish, text, meta)
+        except RuntimeError:  # the loop closed between the check and the call (shutdown)
+            pass
+
+    def _publish(self, text: str, meta: tuple[str | None, int]) -> None:
+        camera, t_ns = meta
+        for c in list(self.clients):
+            if c.camera is not None and c.camera != camera:
+                continue
+            key = camera or ""
+            if c.min_interval_ns and t_ns - c.last_sent_ns.get(key, -(1 << 62)) < c.min_interval_ns:
+                continue
+            c.last_sent_ns[key] = t_ns
+            if c.queue.full():
+                c.queue.get_nowait()
+                c.dropped += 1
+                self.dropped_total += 1
+            c.queue.put_nowait(text)
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "clients": len(self.clients),
+            "dropped_total": self.dropped_total,
+            "queue_size": self.queue_size,
+        }

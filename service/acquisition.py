@@ -1,0 +1,232 @@
+"""One camera's acquisition thread: the only caller of that camera's driver.
+
+It opens the camera (and keeps re-opening it while it is gone), applies the
+settings, and fetches frames into a one-frame slot: the processing worker
+always takes the newest frame, and a frame it had no time for is counted as
+dropped, never queued (a slow consumer must not build a backlog). Commands from
+other threads (software trigger, new settings) run here between fetches.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any
+
+from drivers.base import (
+    CameraDriver,
+    CameraSettings,
+    DriverDisconnected,
+    DriverError,
+    DriverTimeout,
+    Frame,
+    TriggerMode,
+)
+
+log = logging.getLogger(__name__)
+
+FETCH_TIMEOUT_S = 0.1  # short, so that commands wait at most this long
+RETRY_MIN_S, RETRY_MAX_S = 0.5, 5.0
+
+
+class DeviceState(StrEnum):
+    starting = "starting"
+    ok = "ok"
+    disconnected = "disconnected"
+    failed = "failed"  # will not recover by retrying (bad configuration, missing SDK)
+    absent = "absent"  # not configured
+    stopped = "stopped"
+
+
+@dataclass
+class CameraCounters:
+    frames: int = 0
+    dropped: int = 0  # frames replaced in the slot before the worker took them
+    timeouts: int = 0
+    disconnects: int = 0
+    seq_gaps: int = 0  # frames the camera skipped or lost (from its frame counter)
+    fps: float = 0.0
+    last_frame_host_ns: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+class FrameSlot:
+    """The newest frame of one camera; ``put`` replaces, ``take`` empties."""
+
+    def __init__(self, wakeup: threading.Condition) -> None:
+        self._frame: Frame | None = None
+        self._cond = wakeup  # shared by all cameras so that one worker can wait on all of them
+
+    def put(self, frame: Frame) -> bool:
+        """Store the frame; True when an untaken frame was replaced (a drop)."""
+        with self._cond:
+            dropped = self._frame is not None
+            self._frame = frame
+            self._cond.notify_all()
+        return dropped
+
+    def take(self) -> Frame | None:
+        with self._cond:
+            frame, self._frame = self._frame, None
+            return frame
+
+
+class CameraChannel:
+    """Owns one camera driver in its own thread (see the module docstring)."""
+
+    def __init__(
+        self,
+        name: str,
+        driver: CameraDriver,
+        settings: CameraSettings,
+        wakeup: threading.Condition,
+        on_event: Callable[[str, str, str], None],
+    ) -> None:
+        self.name = name
+        self.driver = driver
+        self.settings = settings
+        self.slot = FrameSlot(wakeup)
+        self.state = DeviceState.starting
+        self.last_error = ""
+        self.counters = CameraCounters()
+        self._on_event = on_event  # (level, kind, message)
+        self._commands: queue.Queue[tuple[str, Any, threading.Event | None]] = queue.Queue()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"camera-{name}", daemon=True)
+        self._last_seq: int | None = None
+        self.command_error: dict[int, str] = {}
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        self._stop.set()
+        self._thread.join(timeout=timeout_s)
+        try:
+            self.driver.close()
+        except DriverError as e:
+            log.warning("closing camera %s: %s", self.name, e)
+        self.state = DeviceState.stopped
+
+    # --- commands (any thread) -----------------------------------------------------------------
+
+    def request_trigger(self) -> None:
+        self._commands.put(("trigger", None, None))
+
+    def request_settings(self, settings: CameraSettings, timeout_s: float = 5.0) -> str:
+        """Apply new settings in the owner thread; returns "" or the driver's error sentence."""
+        done = threading.Event()
+        self._commands.put(("configure", settings, done))
+        if not done.wait(timeout_s):
+            return f"camera {self.name} did not apply the settings within {timeout_s} s"
+        return self.command_error.pop(id(done), "")
+
+    # --- the thread ----------------------------------------------------------------------------
+
+    def _set_state(self, state: DeviceState, error: str = "") -> None:
+        if state != self.state:
+            level = "info" if state is DeviceState.ok else "warning"
+            self._on_event(level, f"camera_{state}", f"camera {self.name}: {error or state}")
+        self.state, self.last_error = state, error
+
+    def _connect(self) -> bool:
+        try:
+            self.driver.open()
+            self.driver.configure(self.settings)
+        except DriverError as e:
+            try:
+                self.driver.close()
+            except DriverError:
+                pass
+            self._set_state(DeviceState.disconnected, str(e))
+            return False
+        self._set_state(DeviceState.ok)
+        self._last_seq = None
+        return True
+
+    def _run_commands(self) -> None:
+        while True:
+            try:
+                kind, arg, done = self._commands.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                if kind == "trigger" and self.settings.trigger is TriggerMode.SOFTWARE:
+                    self.driver.trigger()
+                elif kind == "configure":
+                    self.driver.configure(arg)
+                    self.settings = arg
+                    self._last_seq = None
+            except DriverError as e:
+                if done is not None:
+                    self.command_error[id(done)] = str(e)
+                self._on_event("warning", f"camera_{kind}_failed", f"camera {self.name}: {e}")
+            finally:
+                if done is not None:
+                    done.set()
+
+    def _run(self) -> None:
+        retry_s = RETRY_MIN_S
+        while not self._stop.is_set():
+            if self.state is not DeviceState.ok:
+                if not self._connect():
+                    self._stop.wait(retry_s)
+                    retry_s = min(RETRY_MAX_S, retry_s * 2)
+                    continue
+                retry_s = RETRY_MIN_S
+            self._run_commands()
+            try:
+                frame = self.driver.fetch(FETCH_TIMEOUT_S)
+            except DriverTimeout:
+                if self.settings.trigger is TriggerMode.FREE_RUN:
+                    self.counters.timeouts += 1
+                continue
+            except DriverDisconnected as e:
+                self.counters.disconnects += 1
+                try:
+                    self.driver.close()
+                except DriverError:
+                    pass
+                self._set_state(DeviceState.disconnected, str(e))
+                continue
+            except DriverError as e:
+                self._set_state(DeviceState.disconnected, str(e))
+                continue
+            self._account(frame)
+            if self.slot.put(frame):
+                self.counters.dropped += 1
+
+    def _account(self, frame: Frame) -> None:
+        c = self.counters
+        if self._last_seq is not None and self.settings.trigger is TriggerMode.FREE_RUN:
+            gap = (frame.seq - self._last_seq - 1) & 0xFFFF  # frame ids wrap (16 bit on GigE Vision 1.x)
+            if 0 < gap < 1000:
+                c.seq_gaps += gap
+        self._last_seq = frame.seq
+        if c.last_frame_host_ns:
+            dt = (frame.t_host_ns - c.last_frame_host_ns) * 1e-9
+            if dt > 0:
+                c.fps = 1.0 / dt if c.fps == 0 else 0.9 * c.fps + 0.1 / dt
+        c.last_frame_host_ns = frame.t_host_ns
+        c.frames += 1
+
+    def snapshot(self) -> dict[str, Any]:
+        c = self.counters
+        age_s = (time.monotonic_ns() - c.last_frame_host_ns) * 1e-9 if c.last_frame_host_ns else None
+        return {
+            "state": str(self.state),
+            "error": self.last_error,
+            "fps": round(c.fps, 2) if age_s is not None and age_s < 2.0 else 0.0,
+            "frames": c.frames,
+            "dropped": c.dropped,
+            "timeouts": c.timeouts,
+            "disconnects": c.disconnects,
+            "seq_gaps": c.seq_gaps,
+            "last_frame_age_s": None if age_s is None else round(age_s, 3),
+            "trigger": str(self.settings.trigger),
+        }

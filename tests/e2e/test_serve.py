@@ -1,0 +1,82 @@
+"""`posecell serve` as an operator starts it: a subprocess, a TOML file, environment overrides, SIGTERM."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.api.conftest import free_port
+
+ROOT = Path(__file__).resolve().parents[2]
+POSECELL = Path(sys.executable).with_name("posecell")
+
+
+def _wait_health(url: str, proc: subprocess.Popen, timeout_s: float = 90.0) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise AssertionError(f"posecell serve exited with {proc.returncode}: {proc.stderr.read()}")
+        try:
+            h = httpx.get(f"{url}/health", timeout=2).json()
+            if h.get("status") == "ok" and h["processing"]["ok"] > 0:
+                return h
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.3)
+    raise AssertionError("posecell serve did not become healthy")
+
+
+def test_serve_runs_the_simulated_cell_from_a_config_file_and_stops_cleanly(tmp_path):
+    port = free_port()
+    cfg = tmp_path / "posecell.toml"
+    cfg.write_text((ROOT / "deploy" / "posecell.example.toml").read_text().replace("port = 8000", "port = 1"))
+    env = {**os.environ, "POSECELL_SERVER__PORT": str(port), "POSECELL_STATE_DIR": str(tmp_path / "state"),
+           "POSECELL_SERVER__TOKEN": "e2e"}
+    proc = subprocess.Popen([str(POSECELL), "serve", "--config", str(cfg)], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        h = _wait_health(f"http://127.0.0.1:{port}", proc)
+        assert h["cameras"]["cam0"]["state"] == "ok"
+        r = httpx.post(f"http://127.0.0.1:{port}/measure", json={}, headers={"Authorization": "Bearer e2e"}, timeout=10)
+        assert r.status_code == 200 and r.json()["ok"] is True
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            out, err = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            raise
+    # uvicorn shuts down gracefully, then re-raises SIGTERM; systemd counts that as a clean stop
+    assert proc.returncode in (0, -signal.SIGTERM), err
+    assert "Application shutdown complete" in err
+    db = tmp_path / "state" / "measurements.sqlite"
+    assert db.exists() and (tmp_path / "state" / "calibration").is_dir()
+
+
+def test_serve_refuses_a_bad_configuration_with_one_sentence(tmp_path):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[server]\nport = 'eighty'\n")
+    r = subprocess.run([str(POSECELL), "serve", "--config", str(cfg)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2
+    assert "server.port" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed here")
+def test_systemd_unit_verifies_and_is_hardened(tmp_path):
+    unit = tmp_path / "posecell.service"
+    unit.write_text((ROOT / "deploy" / "posecell.service").read_text().replace(
+        "/opt/posecell/.venv/bin/posecell", str(POSECELL)))
+    r = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    r = subprocess.run(["systemd-analyze", "security", "--offline=yes", str(unit)], capture_output=True, text=True,
+                       timeout=60)
+    exposure = float(r.stdout.split("Overall exposure level for posecell.service:")[1].split()[0])
+    assert exposure < 4.5  # "OK" on systemd's scale (lower is safer)
