@@ -84,6 +84,10 @@ class CameraProcessor:
         self.pairer.camera_latency_ns = cfg.transport_latency_s * 1e9
         self.pairer.camera_clock.reset()  # a new exposure or frame rate changes the arrival pattern
 
+    def warm_up(self) -> None:
+        """Build the measurer now (loads or compiles the numba kernels)."""
+        self._current_measurer()
+
     def _current_measurer(self) -> FrameMeasurer | None:
         cal = self.calibration
         if cal.generation != self._generation:

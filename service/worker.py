@@ -67,6 +67,8 @@ class Worker:
         self._last_stored_ns = 0
         self._threads: list[threading.Thread] = []
         self.started_ns = time.monotonic_ns()
+        self.processing_ready = False
+        self.handeye_session: Any = None  # service.handeye_session.HandEyeSession while one runs
 
     # --- lifecycle -----------------------------------------------------------------------------
 
@@ -234,6 +236,15 @@ class Worker:
         return None
 
     def _process_loop(self) -> None:
+        # build the measurers first: the compiled kernels load (or, on a fresh install, compile for
+        # a minute) here, while /health says "initializing", not inside the first frame's latency
+        for proc in self.processors.values():
+            try:
+                proc.warm_up()
+            except Exception:
+                log.exception("preparing the measurer of camera %s", proc.name)
+        self.processing_ready = True
+        self.event("info", "processing_ready", "processing is ready")
         while not self._stop.is_set():
             got = self._next_frame()
             if got is None:
@@ -309,7 +320,9 @@ class Worker:
         states = [c["state"] for c in cams.values()]
         if self.robot_state is not DeviceState.absent:
             states.append(robot["state"])
-        if all(s == "ok" for s in states):
+        if not self.processing_ready:
+            status = "initializing"
+        elif all(s == "ok" for s in states):
             status = "ok"
         elif any(s == "starting" for s in states) and (time.monotonic_ns() - self.started_ns) < 30e9:
             status = "initializing"

@@ -89,6 +89,7 @@ class SimCamera:
         self._last_exposure_start_ns: int | None = None
         self._triggers: list[int] = []
         self._render_s = 0.03  # running estimate of the time one frame takes to render
+        self._pending_start_ns: int | None = None
         self._lock = threading.Lock()  # trigger() may come from another thread than fetch()
 
     # --- CameraDriver -------------------------------------------------------------------------
@@ -135,6 +136,7 @@ class SimCamera:
         with self._lock:
             self._settings = settings
             self._triggers.clear()
+            self._pending_start_ns = None
 
     def fetch(self, timeout_s: float) -> Frame:
         self._require_link()
@@ -151,7 +153,7 @@ class SimCamera:
         t_cell_s = (t_mid_ns - self.epoch_ns) * 1e-9
         t_render = time.perf_counter()
         rendered = self._cell.render(t_cell_s, self._rng, self._render_settings(), lit=self._lit())
-        self._render_s = 0.8 * self._render_s + 0.2 * (time.perf_counter() - t_render)
+        self._render_s = min(0.5, 0.8 * self._render_s + 0.2 * (time.perf_counter() - t_render))
         image = rendered.image
         if self._settings.roi is not None:
             x, y, w, h = self._settings.roi
@@ -162,6 +164,7 @@ class SimCamera:
         self._require_link()  # unplugged while "in flight": the frame is lost with the link
         seq = self._seq_of(t_start_ns)
         self._last_exposure_start_ns = t_start_ns
+        self._pending_start_ns = None
         return Frame(
             image=image,
             seq=seq,
@@ -229,6 +232,8 @@ class SimCamera:
                 return self._triggers[0] if self._triggers else None
         if mode is TriggerMode.HARDWARE:
             return None  # no trigger line in the simulation
+        if self._pending_start_ns is not None:
+            return self._pending_start_ns
         period = self._period_ns()
         exposure_ns = int(self._exposure_us() * 1e3)
         # the next frame that can still be rendered before it is due: rendering stands in for the
@@ -237,7 +242,10 @@ class SimCamera:
         k = math.ceil((ready_ns - self.epoch_ns - exposure_ns - self.latency_ns) / period)
         start = self.epoch_ns + k * period
         last = self._last_exposure_start_ns
-        return start if last is None or start > last else last + period
+        # once chosen, a frame stays the next one until delivered: re-choosing on every short
+        # fetch would push it ahead for ever when rendering is slow
+        self._pending_start_ns = start if last is None or start > last else last + period
+        return self._pending_start_ns
 
     def _next_exposure_start(self, deadline_ns: int) -> int | None:
         if self._settings.trigger is TriggerMode.SOFTWARE:

@@ -117,6 +117,14 @@ class SimRobot:
             self._thread.join(timeout=2.0)
         self._thread = None
 
+    def move_to(self, T_base_flange: np.ndarray, speed_mm_s: float = 250.0) -> float:
+        """Simulation only: move the arm to a flange pose (planned like a linear move); returns its duration s.
+
+        Real robots are moved by the integrator's robot program; the service never commands them.
+        """
+        t_now_s = (time.monotonic_ns() - self.epoch_ns) * 1e-9
+        return self._cell.command_move(T_base_flange, t_now_s + 0.05, speed_mm_s)
+
     def unplug(self) -> None:
         self._plugged = False
 

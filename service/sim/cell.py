@@ -162,6 +162,9 @@ class SimCell:
         self.T_flange_camera = _T_FLANGE_CAMERA.copy()
         self.q_home_rad = np.radians(home_deg)
         self.trajectory = trajectory if trajectory is not None else self._program()
+        # commanded moves (start s, trajectory) played once after the program, each holding its end;
+        # replaced as a whole tuple so that readers in other threads never see half an update
+        self._moves: tuple[tuple[float, JointTrajectory], ...] = ()
 
     # -- programs ----------------------------------------------------------------
 
@@ -205,10 +208,33 @@ class SimCell:
         return self.trajectory.duration_s
 
     def q_at(self, t_s: ArrayLike) -> Array:
-        """True (= commanded) joints (6,) or (M, 6) rad at ``t_s`` s, looping the program."""
+        """True (= commanded) joints (6,) or (M, 6) rad at ``t_s`` s: the looping program, then commanded moves."""
         t = np.asarray(t_s, dtype=np.float64)
         t0 = self.trajectory.t_s[0]
-        return self.trajectory.q_at(t0 + np.mod(t - t0, self.duration_s))
+        q = self.trajectory.q_at(t0 + np.mod(t - t0, self.duration_s))
+        moves = self._moves
+        if not moves:
+            return q
+        t1 = np.atleast_1d(t)
+        q1 = np.array(q, copy=True).reshape(-1, 6)
+        k = np.searchsorted(np.array([m[0] for m in moves]), t1, side="right") - 1
+        for i in np.unique(k[k >= 0]):
+            start, traj = moves[int(i)]
+            sel = k == i
+            q1[sel] = traj.q_at(np.minimum(traj.t_s[0] + (t1[sel] - start), traj.t_s[-1]))
+        return q1.reshape(q.shape)
+
+    def command_move(self, T_base_flange: ArrayLike, t_start_s: float, speed_mm_s: float = 250.0) -> float:
+        """Move the arm from wherever it is at ``t_start_s`` to a flange pose, and hold it there.
+
+        Planned with the nominal model, like a controller's linear move; returns
+        the move's duration (s). Raises ``SolveError`` when the pose is unreachable.
+        """
+        q0 = self.q_at(t_start_s)
+        traj = trajectory_through_poses(self.nominal, [np.asarray(T_base_flange, dtype=np.float64)], q0,
+                                        speed_mm_s=speed_mm_s, start_at_seed=True)
+        self._moves = (*[m for m in self._moves if m[0] < t_start_s], (float(t_start_s), traj))
+        return float(traj.duration_s)
 
     def T_base_flange_true(self, t_s: ArrayLike) -> Array:
         """Where the flange really is: ``true.fk(q)``, (4, 4) or (M, 4, 4)."""

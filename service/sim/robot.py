@@ -240,6 +240,14 @@ class KinematicModel:
                 f"inverse kinematics of {self.name} converged on another arm configuration than the seed's",
                 {"q_rad": q.tolist(), "q_seed_rad": seed.tolist()},
             )
+        # a joint with more than one turn of travel may reach the same angle a turn away: a controller
+        # takes the turn inside the limits, nearest the seed
+        lo, hi = self.q_limits_rad[:, 0], self.q_limits_rad[:, 1]
+        for j in np.flatnonzero((q < lo) | (q > hi)):
+            for turn in sorted((-2 * np.pi, 2 * np.pi), key=lambda d: abs(q[j] + d - seed[j])):
+                if lo[j] <= q[j] + turn <= hi[j]:
+                    q[j] += turn
+                    break
         if check_limits and not self.within_limits(q):
             bad = int(np.flatnonzero(~((q >= self.q_limits_rad[:, 0]) & (q <= self.q_limits_rad[:, 1])))[0])
             raise SolveError(

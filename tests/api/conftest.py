@@ -45,7 +45,7 @@ class LiveServer:
         headers = {"Authorization": f"Bearer {self.token}"} if auth else {}
         return httpx.Client(base_url=self.url, headers=headers, timeout=10.0)
 
-    def wait_for(self, predicate: Any, timeout_s: float = 20.0, what: str = "condition") -> Any:
+    def wait_for(self, predicate: Any, timeout_s: float = 30.0, what: str = "condition") -> Any:
         deadline = time.monotonic() + timeout_s
         with self.client() as c:
             while time.monotonic() < deadline:

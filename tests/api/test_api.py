@@ -16,7 +16,9 @@ from service.core.frames import pose_difference
 
 
 def _wait_ok(live):
-    return live.wait_for(lambda h: h["status"] == "ok" and h["processing"]["ok"] >= 3, what="a running cell")
+    # the first start on a fresh machine compiles the numba kernels (a minute on a slow CI machine)
+    return live.wait_for(lambda h: h["status"] == "ok" and h["processing"]["ok"] >= 3, timeout_s=180.0,
+                         what="a running cell")
 
 
 def test_health_reports_devices_calibration_and_rates(live):

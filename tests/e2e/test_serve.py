@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[2]
 POSECELL = Path(sys.executable).with_name("posecell")
 
 
-def _wait_health(url: str, proc: subprocess.Popen, timeout_s: float = 90.0) -> dict:
+def _wait_health(url: str, proc: subprocess.Popen, timeout_s: float = 180.0) -> dict:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if proc.poll() is not None:

@@ -1,0 +1,127 @@
+"""The guided hand-eye calibration over the API (see ``service/handeye_session.py`` for the steps).
+
+    POST   /calibration/handeye/session            plan: proposed flange poses around the field
+    GET    /calibration/handeye/session            proposals, samples, motion quality, result
+    POST   /calibration/handeye/session/move/{k}   simulated cell only: move the arm to proposal k
+    POST   /calibration/handeye/session/samples    record a sample at the robot's current (resting) pose
+    DELETE /calibration/handeye/session/samples/{k}
+    POST   /calibration/handeye/session/solve      solve X and Z; ?apply=true stores and uses the result
+    GET    /calibration/handeye/session/export     samples for `posecell calibrate handeye --samples`
+    DELETE /calibration/handeye/session
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter
+from pydantic import BaseModel, ConfigDict, Field
+
+from api.deps import WorkerDep
+from api.errors import ApiError
+from api.security import Authorized
+from service.core.results import Reason, SolveError
+from service.handeye_session import HandEyeSession, SessionError
+
+router = APIRouter(prefix="/calibration/handeye/session", tags=["hand-eye calibration"])
+
+_STATUS = {"robot_moving": 409, "not_solved": 409, "not_found": 404, Reason.poor_motion: 422,
+           Reason.degenerate_geometry: 422, Reason.too_few_targets: 409, Reason.not_calibrated: 409,
+           Reason.robot_disconnected: 503, Reason.camera_disconnected: 503}
+
+
+def _err(e: SessionError) -> ApiError:
+    return ApiError(str(e.reason), e.message, status=_STATUS.get(str(e.reason), 409))
+
+
+def _session(worker: Any) -> HandEyeSession:
+    s = getattr(worker, "handeye_session", None)
+    if s is None:
+        raise ApiError("not_found", "no hand-eye session; start one with POST /calibration/handeye/session")
+    return s
+
+
+class StartRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    camera: str | None = None
+    n_poses: int = Field(12, ge=3, le=60)
+
+
+@router.post("", dependencies=[Authorized], summary="Start a session: propose robot poses around the field")
+def start(worker: WorkerDep, req: StartRequest | None = None) -> dict[str, Any]:
+    req = req or StartRequest()
+    camera = req.camera or next(iter(worker.processors))
+    if camera not in worker.processors:
+        raise ApiError("not_found", f"no camera named {camera!r}")
+    try:
+        worker.handeye_session = HandEyeSession.start(worker, camera, req.n_poses)
+    except SessionError as e:
+        raise _err(e) from None
+    worker.event("info", "handeye_session", f"hand-eye session started with {req.n_poses} proposed poses")
+    return worker.handeye_session.summary()
+
+
+@router.get("", summary="The session: proposals, samples, motion quality, result")
+def get(worker: WorkerDep) -> dict[str, Any]:
+    return _session(worker).summary()
+
+
+@router.delete("", dependencies=[Authorized], summary="Discard the session")
+def delete(worker: WorkerDep) -> dict[str, Any]:
+    worker.handeye_session = None
+    return {"ok": True}
+
+
+@router.post("/move/{index}", dependencies=[Authorized], summary="Simulated cell only: move the arm to a proposal")
+def move(index: int, worker: WorkerDep) -> dict[str, Any]:
+    s = _session(worker)
+    if not 0 <= index < len(s.proposals):
+        raise ApiError("not_found", f"no proposal #{index}; there are {len(s.proposals)}")
+    move_to = getattr(worker.robot, "move_to", None)
+    if move_to is None:
+        raise ApiError("unsupported", "this robot is moved by its own program: send it to the proposed "
+                       "T_base_flange (ur_pose_m_rotvec for UR), then record a sample", status=409)
+    try:
+        duration_s = move_to(s.proposals[index])
+    except SolveError as e:
+        raise ApiError(str(e.reason), f"proposal #{index} is not reachable: {e.message}", status=422) from None
+    return {"ok": True, "index": index, "duration_s": round(duration_s, 3)}
+
+
+@router.post("/samples", dependencies=[Authorized], summary="Record a sample at the robot's current resting pose")
+def capture(worker: WorkerDep) -> dict[str, Any]:
+    s = _session(worker)
+    try:
+        sample = s.capture(worker)
+    except SessionError as e:
+        raise _err(e) from None
+    except TimeoutError:
+        raise ApiError(Reason.timeout, "no frame was measured within 5 s; see /health") from None
+    return {"ok": True, "index": len(s.samples) - 1, "sample": sample.to_dict(), "n_samples": len(s.samples)}
+
+
+@router.delete("/samples/{index}", dependencies=[Authorized], summary="Remove a sample")
+def remove(index: int, worker: WorkerDep) -> dict[str, Any]:
+    try:
+        _session(worker).remove(index)
+    except SessionError as e:
+        raise _err(e) from None
+    return {"ok": True}
+
+
+@router.post("/solve", dependencies=[Authorized], summary="Solve X and Z; apply=true stores and uses the result")
+def solve(worker: WorkerDep, apply: bool = False) -> dict[str, Any]:
+    s = _session(worker)
+    try:
+        result = s.solve()
+        if apply:
+            s.applied_version = worker.calibration.update("handeye", s.handeye_payload(), note="hand-eye session")
+            worker.event("info", "calibration_changed", f"hand-eye version {s.applied_version} from a session")
+    except SessionError as e:
+        raise _err(e) from None
+    return {**result, "applied_version": s.applied_version}
+
+
+@router.get("/export", summary="The samples, as `posecell calibrate handeye --samples` reads them")
+def export(worker: WorkerDep) -> dict[str, Any]:
+    return _session(worker).export()
