@@ -86,7 +86,7 @@ class StrobeSettings:
 
 @dataclass(frozen=True)
 class CameraSettings:
-    """What the configuration sets on a camera; ``None`` leaves the device's value unchanged."""
+    """What the configuration sets on a camera; a ``None`` number leaves the device's value unchanged."""
 
     exposure_us: float | None = 2000.0
     gain_db: float | None = None
@@ -95,7 +95,7 @@ class CameraSettings:
     trigger_line: str = "Line0"
     pixel_format: str | None = None  # "Mono8", "Mono12", "Mono16"
     roi: tuple[int, int, int, int] | None = None  # x, y, width, height in px
-    strobe: StrobeSettings | None = None
+    strobe: StrobeSettings | None = None  # None: no strobe (a line the driver had lit is switched off)
 
 
 @dataclass(frozen=True)

@@ -105,9 +105,9 @@ class Worker:
             self._waiters.clear()
 
     def _add_camera(self, cfg: CameraConfig) -> None:
-        options = self.cell.camera_options(cfg)
+        name, options = self.cell.camera_driver(cfg)
         try:
-            driver = make_camera(cfg.driver, **options)
+            driver = make_camera(name, **options)
         except (DriverError, TypeError, ValueError) as e:
             # a missing SDK or bad options do not get better by retrying: report, keep the rest running
             self.event("error", "camera_failed", f"camera {cfg.name}: {e}")
@@ -124,7 +124,8 @@ class Worker:
         while not self._stop.is_set():
             if self.robot is None:
                 try:
-                    self.robot = make_robot(self.settings.robot.driver, **self.cell.robot_options())
+                    name, options = self.cell.robot_driver()
+                    self.robot = make_robot(name, **options)
                 except (DriverError, TypeError, ValueError) as e:
                     self._set_robot_state(DeviceState.failed, str(e))
                     return
