@@ -56,7 +56,7 @@ class CellRuntime:
             return
         from drivers.standins.gv_camera import GvStandIn, cell_frame_source  # needs PyGObject + Aravis
 
-        self._gv = GvStandIn(cell_frame_source(cell, self.epoch_ns), address=GV_ADDRESS, serial="POSECELL-SIM",
+        self._gv = GvStandIn(cell_frame_source(cell, self.epoch_ns, ahead=True), address=GV_ADDRESS, serial="POSECELL-SIM",
                              width=cell.camera.width, height=cell.camera.height)
         self._gv.start()
         self._rtde = subprocess.Popen(
@@ -86,6 +86,8 @@ class CellRuntime:
         if cfg.driver != "sim":
             return cfg.driver, dict(cfg.options)
         if self.standins:
+            # frames rendered ahead leave only the copy and the loopback transfer as latency
+            cfg.transport_latency_s = 0.0005
             return "aravis", {"device": GV_ADDRESS, "packet_size": 8192}
         return "sim", {"cell": self.cell, "epoch_ns": self.epoch_ns, **cfg.options}
 

@@ -39,6 +39,8 @@ after adding it (``ip addr add 127.0.0.2/8 dev lo``).
 
 from __future__ import annotations
 
+import collections
+import concurrent.futures
 import contextlib
 import ctypes
 import fcntl
@@ -102,6 +104,8 @@ def _libaravis() -> ctypes.CDLL:
         "arv_buffer_get_image_width": (ctypes.c_int, [ctypes.c_void_p]),
         "arv_buffer_get_image_height": (ctypes.c_int, [ctypes.c_void_p]),
         "arv_buffer_get_data": (ctypes.c_void_p, [ctypes.c_void_p, ctypes.POINTER(ctypes.c_size_t)]),
+        "arv_buffer_get_timestamp": (ctypes.c_uint64, [ctypes.c_void_p]),
+        "arv_buffer_set_timestamp": (None, [ctypes.c_void_p, ctypes.c_uint64]),
     }
     for name, (restype, argtypes) in sigs.items():
         fn = getattr(lib, name)
@@ -284,7 +288,14 @@ class GvStandIn:
             data = _lib.arv_buffer_get_data(buffer, ctypes.byref(size))  # size reads 0 here: use the payload
             payload = _lib.arv_fake_camera_get_payload(self._fake_ptr)
             lit = self._lit()
-            sensor = np.asarray(self.frame_source(t_host_ns, lit))
+            got = self.frame_source(t_host_ns, lit)
+            if isinstance(got, tuple):
+                # the source drew the scene at another instant (a frame rendered ahead): stamp the
+                # buffer with that instant, so that the device clock and the content agree
+                got, t_content_ns = got
+                stamp = _lib.arv_buffer_get_timestamp(buffer)
+                _lib.arv_buffer_set_timestamp(buffer, max(0, stamp + (int(t_content_ns) - t_host_ns)))
+            sensor = np.asarray(got)
             window = self._window(sensor, self._register(_REG_OFFSET_X), self._register(_REG_OFFSET_Y),
                                   width, height, pixel_format)
             ctypes.memmove(data, window.ctypes.data, min(window.nbytes, payload))
@@ -372,22 +383,49 @@ class GvStandIn:
                                    f"device or program ({e.strerror})") from e
 
 
-def cell_frame_source(cell: Any, t0_ns: int | None = None) -> FrameSource:
+def cell_frame_source(cell: Any, t0_ns: int | None = None, ahead: bool = False) -> FrameSource:
     """A ``frame_source`` showing a :class:`service.sim.cell.SimCell` at ``(t_host_ns - t0_ns)`` s.
 
     Noise-free renders; a cell whose program holds still is rendered once per ring-light state.
+    With ``ahead`` a background thread renders the next frame for the instant the fake camera
+    is expected to fill it (its frame period, learnt from the calls), and the frame goes out at
+    once with that instant as its device timestamp: the fake camera renders inside its
+    exposure, and tens of milliseconds of rendering would otherwise look like transfer latency.
     """
     t0 = time.monotonic_ns() if t0_ns is None else t0_ns
     still = getattr(cell.config, "program", None) == "hold"
     cache: dict[bool, np.ndarray] = {}
 
-    def source(t_host_ns: int, lit: bool) -> np.ndarray:
+    def render(t_host_ns: int, lit: bool) -> np.ndarray:
         if still and lit in cache:
             return cache[lit]
         image: np.ndarray = cell.render((t_host_ns - t0) * 1e-9, None, lit=lit).image
         if still:
             cache[lit] = image
         return image
+
+    if not ahead:
+        return render
+    pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="gv-prerender")
+    calls: collections.deque[int] = collections.deque(maxlen=9)
+    pending: dict[str, Any] = {}
+
+    def source(t_host_ns: int, lit: bool) -> Any:
+        calls.append(t_host_ns)
+        fut = pending.pop("future", None)
+        image, t_content = None, t_host_ns
+        if fut is not None and fut.done():
+            t_pred, lit_pred, img = fut.result()
+            if lit_pred == lit and len(calls) >= 3:
+                period = float(np.median(np.diff(np.array(calls))))
+                if abs(t_pred - t_host_ns) < 0.5 * period:
+                    image, t_content = img, t_pred
+        if image is None:
+            image = render(t_host_ns, lit)
+        if len(calls) >= 3:
+            t_next = t_host_ns + int(np.median(np.diff(np.array(calls))))
+            pending["future"] = pool.submit(lambda t=t_next, lt=lit: (t, lt, render(t, lt)))
+        return image, t_content
 
     return source
 
