@@ -56,7 +56,8 @@ class CellRuntime:
             return
         from drivers.standins.gv_camera import GvStandIn, cell_frame_source  # needs PyGObject + Aravis
 
-        self._gv = GvStandIn(cell_frame_source(cell, self.epoch_ns, ahead=True), address=GV_ADDRESS, serial="POSECELL-SIM",
+        source = cell_frame_source(cell, self.epoch_ns, ahead=True)
+        self._gv = GvStandIn(source, address=GV_ADDRESS, serial="POSECELL-SIM",
                              width=cell.camera.width, height=cell.camera.height)
         self._gv.start()
         self._rtde = subprocess.Popen(
