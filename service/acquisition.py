@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 
 FETCH_TIMEOUT_S = 0.1  # short, so that commands wait at most this long
 RETRY_MIN_S, RETRY_MAX_S = 0.5, 5.0
+STALLED = "stalled"  # reported state of a connected camera that delivers no frames
 
 
 class DeviceState(StrEnum):
@@ -197,6 +198,11 @@ class CameraChannel:
             except DriverError as e:
                 self._set_state(DeviceState.disconnected, str(e))
                 continue
+            except Exception as e:  # a driver bug must not end acquisition silently: report, reopen
+                log.exception("camera %s: fetch failed", self.name)
+                self._set_state(DeviceState.disconnected, f"driver error: {e!r}")
+                self._stop.wait(RETRY_MIN_S)
+                continue
             self._account(frame)
             if self.slot.put(frame):
                 self.counters.dropped += 1
@@ -218,9 +224,15 @@ class CameraChannel:
     def snapshot(self) -> dict[str, Any]:
         c = self.counters
         age_s = (time.monotonic_ns() - c.last_frame_host_ns) * 1e-9 if c.last_frame_host_ns else None
+        state, error = str(self.state), self.last_error
+        # connected but silent: a free-running camera that delivers nothing is not "ok"
+        period_s = 1.0 / (self.settings.frame_rate_hz or 1.0)
+        if (self.state is DeviceState.ok and self.settings.trigger is TriggerMode.FREE_RUN and age_s is not None
+                and age_s > max(3.0, 10 * period_s)):
+            state, error = STALLED, f"camera {self.name} is connected but delivered no frame for {age_s:.1f} s"
         return {
-            "state": str(self.state),
-            "error": self.last_error,
+            "state": state,
+            "error": error,
             "fps": round(c.fps, 2) if age_s is not None and age_s < 2.0 else 0.0,
             "frames": c.frames,
             "dropped": c.dropped,
