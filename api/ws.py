@@ -20,6 +20,7 @@ class Client:
     queue: asyncio.Queue[str]
     camera: str | None = None
     min_interval_ns: int = 0  # decimation: at most one message per interval
+    targets: bool = True  # False: results without the per-target list (~15 kB less per message)
     last_sent_ns: dict[str, int] = field(default_factory=dict)
     dropped: int = 0
     sent: int = 0
@@ -35,9 +36,9 @@ class Hub:
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
 
-    def add(self, camera: str | None, max_rate_hz: float | None) -> Client:
+    def add(self, camera: str | None, max_rate_hz: float | None, targets: bool = True) -> Client:
         interval = int(1e9 / max_rate_hz) if max_rate_hz else 0
-        client = Client(asyncio.Queue(self.queue_size), camera, interval)
+        client = Client(asyncio.Queue(self.queue_size), camera, interval, targets)
         self.clients.add(client)
         return client
 
@@ -49,13 +50,16 @@ class Hub:
         if loop is None or loop.is_closed():
             return
         text = json.dumps(result, separators=(",", ":"))
+        lite = text
+        if "targets" in result and any(not c.targets for c in list(self.clients)):
+            lite = json.dumps({k: v for k, v in result.items() if k != "targets"}, separators=(",", ":"))
         meta = (result.get("camera"), int(result.get("t_exposure_host_ns", 0)))
         try:
-            loop.call_soon_threadsafe(self._publish, text, meta)
+            loop.call_soon_threadsafe(self._publish, (text, lite), meta)
         except RuntimeError:  # the loop closed between the check and the call (shutdown)
             pass
 
-    def _publish(self, text: str, meta: tuple[str | None, int]) -> None:
+    def _publish(self, texts: tuple[str, str], meta: tuple[str | None, int]) -> None:
         camera, t_ns = meta
         for c in list(self.clients):
             if c.camera is not None and c.camera != camera:
@@ -68,7 +72,7 @@ class Hub:
                 c.queue.get_nowait()
                 c.dropped += 1
                 self.dropped_total += 1
-            c.queue.put_nowait(text)
+            c.queue.put_nowait(texts[0] if c.targets else texts[1])
 
     def stats(self) -> dict[str, Any]:
         return {

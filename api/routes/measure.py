@@ -86,16 +86,18 @@ async def ws_poses(
     websocket: WebSocket,
     camera: str | None = None,
     max_rate_hz: Annotated[float | None, Query(gt=0, le=1000)] = None,
+    targets: bool = True,
 ) -> None:
-    """Every result as a JSON text message; ``max_rate_hz`` decimates; slow clients lose the oldest messages."""
+    """Every result as a JSON text message; ``max_rate_hz`` decimates; ``targets=false`` leaves the
+    per-target list out; slow clients lose the oldest messages."""
     hub = websocket.app.state.hub
     await websocket.accept()
-    client = hub.add(camera, max_rate_hz)  # subscribe first, then backfill: no result falls between
+    client = hub.add(camera, max_rate_hz, targets)  # subscribe first, then backfill: no result falls between
     try:
         worker = websocket.app.state.worker
         latest = [r for n, r in worker.latest.items() if camera in (None, n)]
         for r in latest:
-            await websocket.send_json(r)
+            await websocket.send_json(r if targets else {k: v for k, v in r.items() if k != "targets"})
         while True:
             text = await client.queue.get()
             await websocket.send_text(text)

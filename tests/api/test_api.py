@@ -80,6 +80,9 @@ def test_pose_stream_delivers_every_result_and_decimates_on_request(live):
     seqs = [m["seq"] for m in msgs[1:]]  # the first is the backfill (latest result)
     assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
     assert all("T_field_camera" in m or m["ok"] is False for m in msgs)
+    with connect(f"{live.ws_url}/ws/poses?targets=false", open_timeout=10) as ws:
+        lite = [json.loads(ws.recv(timeout=5)) for _ in range(3)]
+    assert all("targets" not in m and "T_field_camera" in m for m in lite if m["ok"])
     with connect(f"{live.ws_url}/ws/poses?max_rate_hz=2", open_timeout=10) as ws:
         ws.recv(timeout=5)  # backfill
         t0 = time.monotonic()
