@@ -7,8 +7,9 @@
    the next frame's measured ``T_field_camera`` with its σ, and the robot's
    reported ``T_base_flange`` at that exposure — refused while the robot moves.
 3. ``solve``: Tsai–Lenz, then the joint refinement of X and Z over all samples
-   with the camera σ from the resections (``core.handeye.calibrate_handeye``);
-   residuals per sample and warnings come back; ``apply`` stores the result
+   with the camera σ from the resections (``core.handeye.calibrate_handeye``),
+   then the refinement on the image observations with the robot's pose errors
+   as unknowns (``core.handeye_images``); residuals per sample and warnings come back; ``apply`` stores the result
    versioned and atomically, and the worker uses it from the next frame.
 
 Samples can be exported in the format of ``posecell calibrate handeye --samples``.
@@ -23,8 +24,11 @@ from typing import Any
 
 import numpy as np
 
+from service.core.camera_model import BrownFraser
+from service.core.field import Field
 from service.core.frames import orientation_report, ur_pose_from_T
 from service.core.handeye import calibrate_handeye, motion_quality
+from service.core.handeye_images import ImageSample, refine_handeye_on_images
 from service.core.handeye_plan import flange_poses_for_views, propose_views
 from service.core.results import Reason, SolveError
 
@@ -51,9 +55,13 @@ class Sample:
     n_targets: int
     t_wall: str
     camera: str
+    ids: list[str] = field(default_factory=list)  # the targets used in the frame's adjustment
+    uv: np.ndarray | None = None  # (N, 2) px, measured
 
     def to_dict(self) -> dict[str, Any]:
         return {
+            "points": [{"id": i, "uv": [float(u), float(v)]} for i, (u, v) in zip(self.ids, self.uv, strict=True)]
+            if self.uv is not None else [],
             "T_base_flange": self.T_base_flange.tolist(),
             "T_field_camera": self.T_field_camera.tolist(),
             "sigma_position_mm": self.sigma_position_mm,
@@ -128,6 +136,8 @@ class HandEyeSession:
             n_targets=int(result["n_coded"]) + int(result["n_uncoded"]),
             t_wall=result["t_wall"],
             camera=self.camera,
+            ids=[t["id"] for t in result.get("targets", []) if not t.get("rejected")],
+            uv=np.array([t["uv"] for t in result.get("targets", []) if not t.get("rejected")]).reshape(-1, 2),
         )
         with self.lock:
             self.samples.append(sample)
@@ -143,7 +153,9 @@ class HandEyeSession:
 
     # --- 3. solve and apply -------------------------------------------------------------------
 
-    def solve(self) -> dict[str, Any]:
+    def solve(self, camera: BrownFraser | None = None, target_field: Field | None = None) -> dict[str, Any]:
+        """Tsai–Lenz + pose-level refinement; then, given the camera and field, the refinement on the
+        image observations with the robot's errors as unknowns (the stored answer when it converges)."""
         with self.lock:
             samples = list(self.samples)
         if len(samples) < 3:
@@ -159,7 +171,33 @@ class HandEyeSession:
                                     sigma_camera_rotation_deg=max(sig_rot, 1e-4))
         except SolveError as e:
             raise SessionError(e.reason, e.message) from None
-        out = {"ok": True, **res.to_dict(), "n_samples": len(samples)}
+        out = {"ok": True, **res.to_dict(), "n_samples": len(samples), "method": "pose-level"}
+        if camera is not None and target_field is not None and all(s.uv is not None and len(s.ids) >= 4
+                                                                    for s in samples):
+            img = [ImageSample(s.T_base_flange, target_field.xyz[target_field.indices_of(s.ids)], s.uv)
+                   for s in samples]
+            try:
+                ref = refine_handeye_on_images(camera, img, res.T_flange_camera, res.T_base_field,
+                                               sigma_px=max(0.01, float(np.median([s.rms_px for s in samples]))))
+            except SolveError as e:
+                out["warnings"] = [*out["warnings"], f"image-level refinement failed: {e.message}"]
+            else:
+                if ref.converged:
+                    out.update(
+                        method="image-level",
+                        T_flange_camera=ref.T_flange_camera.tolist(),
+                        T_base_field=ref.T_base_field.tolist(),
+                        sigma_flange_camera_position_mm=ref.sigma_flange_camera_position_mm.tolist(),
+                        sigma_flange_camera_rotation_deg=ref.sigma_flange_camera_rotation_deg.tolist(),
+                        sigma_base_field_position_mm=ref.sigma_base_field_position_mm.tolist(),
+                        sigma_base_field_rotation_deg=ref.sigma_base_field_rotation_deg.tolist(),
+                        robot_error_position_mm=ref.robot_error_position_mm.tolist(),
+                        robot_error_rotation_deg=ref.robot_error_rotation_deg.tolist(),
+                        rms_px_per_sample=ref.rms_px.tolist(),
+                        sigma0_images=ref.sigma0,
+                        pose_level={"T_flange_camera": res.T_flange_camera.tolist(),
+                                    "T_base_field": res.T_base_field.tolist()},
+                    )
         with self.lock:
             self.result = out
         return out

@@ -113,7 +113,7 @@ def remove(index: int, worker: WorkerDep) -> dict[str, Any]:
 def solve(worker: WorkerDep, apply: bool = False) -> dict[str, Any]:
     s = _session(worker)
     try:
-        result = s.solve()
+        result = s.solve(worker.calibration.camera, worker.calibration.field)
         if apply:
             s.applied_version = worker.calibration.update("handeye", s.handeye_payload(), note="hand-eye session")
             worker.event("info", "calibration_changed", f"hand-eye version {s.applied_version} from a session")

@@ -69,6 +69,7 @@ def test_hand_eye_session_from_proposed_poses_to_the_stored_result(uncalibrated,
         assert r.status_code == 200, r.text
         result = r.json()
         assert result["applied_version"] is not None
+        assert result["method"] == "image-level" and len(result["rms_px_per_sample"]) == n
 
         # the true hand-eye, within what the arm's 1-2 mm model errors allow
         X, Z = np.array(result["T_flange_camera"]), np.array(result["T_base_field"])
