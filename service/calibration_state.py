@@ -19,9 +19,11 @@ from service import formats
 from service.core.camera_model import BrownFraser
 from service.core.field import Field
 from service.core.frames import check_T
+from service.core.intersection import Rig
+from service.core.rig import rig_from_dict
 from service.settings import Settings
 
-KINDS = ("camera", "field", "handeye")
+KINDS = ("camera", "field", "handeye", "rig")
 
 
 @dataclass(frozen=True)
@@ -45,6 +47,11 @@ def validate(kind: str, data: Any) -> Any:
         except ValueError as e:
             raise formats.FormatError(f"handeye.json: {e}") from None
         return HandEye(X, Z)
+    if kind == "rig":
+        try:
+            return rig_from_dict(data)
+        except ValueError as e:
+            raise formats.FormatError(f"rig.json: {e}") from None
     raise formats.FormatError(f"unknown calibration kind {kind!r}; one of {KINDS}")
 
 
@@ -56,6 +63,7 @@ class CalibrationState:
         self.camera: BrownFraser | None = None
         self.field: Field | None = None
         self.handeye: HandEye | None = None
+        self.rig: Rig | None = None
         self.versions: dict[str, int | None] = dict.fromkeys(KINDS)
         self.sources: dict[str, str] = dict.fromkeys(KINDS, "missing")
         self._load(settings, cell)
@@ -65,6 +73,7 @@ class CalibrationState:
             "camera": settings.calibration.camera_file,
             "field": settings.calibration.field_file,
             "handeye": settings.calibration.handeye_file,
+            "rig": settings.calibration.rig_file,
         }
         sim = cell.defaults() if cell is not None and cell.active else {}
         for kind in KINDS:
@@ -116,6 +125,9 @@ class CalibrationState:
             raise KeyError(kind)
         if kind == "camera":
             return obj.to_dict()
+        if kind == "rig":
+            return {"model": "rig", "master": 0, "cameras": [c.to_dict() for c in obj.cameras],
+                    "T_master_camera": obj.T_master_camera.tolist()}
         if kind == "field":
             return formats.field_to_json(obj)
         return {"T_flange_camera": obj.T_flange_camera.tolist(), "T_base_field": obj.T_base_field.tolist()}

@@ -81,6 +81,8 @@ class RobotConfig(_Section):
 
 class ProcessingConfig(_Section):
     roi_tracking: bool = True
+    # a rig's cameras are combined when their exposures lie this close (a hardware-triggered rig: ~0)
+    rig_sync_tolerance_s: float = Field(0.005, gt=0)
     code_family: Literal["posecell12", "aicon14"] = "posecell12"
     min_targets: int = Field(6, ge=4)
     min_coded: int = Field(4, ge=3)
@@ -97,6 +99,7 @@ class CalibrationConfig(_Section):
     camera_file: Path | None = None
     field_file: Path | None = None
     handeye_file: Path | None = None
+    rig_file: Path | None = None  # two or more cameras: their relative orientation (posecell calibrate rig)
 
 
 class StorageConfig(_Section):

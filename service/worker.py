@@ -33,6 +33,7 @@ from service.calibration_state import CalibrationState
 from service.cell_runtime import CellRuntime
 from service.core.results import Failure, Reason
 from service.measure_frame import CameraProcessor
+from service.rig_processing import RIG, RigCombiner
 from service.settings import CameraConfig, ProcessingConfig, Settings
 from service.storage import StorageError
 
@@ -68,6 +69,7 @@ class Worker:
         self._threads: list[threading.Thread] = []
         self.started_ns = time.monotonic_ns()
         self.processing_ready = False
+        self.rig = RigCombiner([c.name for c in settings.cameras], settings.processing.rig_sync_tolerance_s)
         self.handeye_session: Any = None  # service.handeye_session.HandEyeSession while one runs
 
     # --- lifecycle -----------------------------------------------------------------------------
@@ -192,9 +194,9 @@ class Worker:
     def request_measurement(self, camera: str | None = None) -> concurrent.futures.Future[dict[str, Any]]:
         """A future for the result of the next frame exposed after now (software-triggered if so configured)."""
         fut: concurrent.futures.Future[dict[str, Any]] = concurrent.futures.Future()
-        if camera is not None and camera not in self.processors:
+        if camera is not None and camera not in self.processors and camera != RIG:
             raise KeyError(camera)
-        names = [camera] if camera else list(self.processors)
+        names = [camera] if camera and camera != RIG else list(self.processors)
         for name in names:
             reason = self._camera_unavailable(name)
             if reason is not None:
@@ -257,6 +259,13 @@ class Worker:
                 log.exception("processing a frame of camera %s", name)
                 result = self._failure(name, Reason.bad_image, f"internal error while measuring: {e!r}")
             self._publish(name, frame, result)
+            if len(self.cameras) >= 2 and self.calibration.rig is not None:
+                combined = self.rig.add(result, self.calibration.rig, self.calibration.field, self.calibration.handeye)
+                if combined is not None:
+                    self._publish(RIG, frame, combined)
+
+    def _rig_active(self) -> bool:
+        return len(self.cameras) >= 2 and self.calibration.rig is not None
 
     def _publish(self, name: str, frame: Frame, result: dict[str, Any]) -> None:
         c = self.counters
@@ -274,7 +283,10 @@ class Worker:
         t_exposure = result.get("t_exposure_host_ns", frame.t_host_ns)
         with self._lock:
             subscribers = list(self._subscribers)
-            waiting = [w for w in self._waiters if (w[0] in (None, name)) and t_exposure >= w[1]]
+            # a request for "any camera" is answered by the rig's result when a rig is calibrated
+            answers_any = name == (RIG if self._rig_active() else name)
+            waiting = [w for w in self._waiters
+                       if (w[0] == name or (w[0] is None and answers_any)) and t_exposure >= w[1]]
             self._waiters = [w for w in self._waiters if w not in waiting]
         stored_seq = None
         if waiting or self._due_for_storage(frame):

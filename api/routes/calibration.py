@@ -20,6 +20,7 @@ class Kind(StrEnum):
     camera = "camera"
     field = "field"
     handeye = "handeye"
+    rig = "rig"
 
 
 @router.get("", summary="Which calibrations are loaded, their versions and sources")

@@ -29,7 +29,7 @@ class MeasureRequest(BaseModel):
 
 
 def _camera(worker: Any, camera: str | None) -> None:
-    if camera is not None and camera not in worker.processors:
+    if camera is not None and camera not in worker.processors and camera != "rig":
         raise ApiError("not_found", f"no camera named {camera!r}; cameras: {sorted(worker.processors)}")
 
 

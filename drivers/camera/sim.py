@@ -40,7 +40,7 @@ from drivers.base import (
     TriggerMode,
 )
 from service.sim.cell import CellConfig, SimCell
-from service.sim.render import RenderSettings
+from service.sim.render import RenderSettings, render_frame
 
 _LIT_SOURCES = ("ExposureActive", "Timer0Active", "Timer1Active")
 _BIT_DEPTH = {"Mono8": 8, "Mono12": 12, "Mono16": 16}
@@ -72,6 +72,7 @@ class SimCamera:
         clock_drift_ppm: float = 30.0,
         seed: int = 1,
         serial: str = "SIM-0001",
+        T_master_camera: list[list[float]] | None = None,
     ) -> None:
         self._cell = cell if cell is not None else SimCell(CellConfig(**(cell_config or {})))
         self.epoch_ns = time.monotonic_ns() if epoch_ns is None else int(epoch_ns)
@@ -82,6 +83,8 @@ class SimCamera:
         self.clock_rate = 1.0 + clock_drift_ppm * 1e-6
         self._rng = np.random.default_rng(seed)
         self._serial = serial
+        # a second camera of a rig: its pose relative to the cell's camera (the master), mm
+        self.T_master_camera = None if T_master_camera is None else np.asarray(T_master_camera, dtype=np.float64)
         self._settings = CameraSettings(strobe=None)
         self._open = False
         self._plugged = True
@@ -152,7 +155,11 @@ class SimCamera:
         t_mid_ns = t_start_ns + exposure_ns // 2
         t_cell_s = (t_mid_ns - self.epoch_ns) * 1e-9
         t_render = time.perf_counter()
-        rendered = self._cell.render(t_cell_s, self._rng, self._render_settings(), lit=self._lit())
+        if self.T_master_camera is None:
+            rendered = self._cell.render(t_cell_s, self._rng, self._render_settings(), lit=self._lit())
+        else:
+            s = replace(self._render_settings(), lit=self._lit())
+            rendered = render_frame(self._cell.camera, self._cell.field, self._T_field_camera(t_cell_s), s, self._rng)
         self._render_s = min(0.5, 0.8 * self._render_s + 0.2 * (time.perf_counter() - t_render))
         image = rendered.image
         if self._settings.roi is not None:
@@ -174,7 +181,7 @@ class SimCamera:
             t_device_ns=int((t_start_ns - self.clock_offset_ns) * self.clock_rate),
             exposure_us=self._exposure_us(),
             meta={
-                "T_field_camera": self._cell.T_field_camera(t_cell_s).tolist(),
+                "T_field_camera": self._T_field_camera(t_cell_s).tolist(),
                 "t_exposure_true_host_ns": t_mid_ns,
                 "t_cell_s": t_cell_s,
                 "lit": self._lit(),
@@ -202,6 +209,10 @@ class SimCamera:
 
     def close(self) -> None:
         self._open = False
+
+    def _T_field_camera(self, t_cell_s: float) -> np.ndarray:
+        T = self._cell.T_field_camera(t_cell_s)
+        return T if self.T_master_camera is None else T @ self.T_master_camera
 
     # --- fault injection for tests and the demo -----------------------------------------------
 
