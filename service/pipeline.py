@@ -5,8 +5,11 @@ resect from the coded targets, predict every uncoded target from that pose and
 match it to the nearest blob, then adjust over all targets with gross errors
 rejected. ROI mode: predict every target from the last poses, measure only small
 windows around the predictions, adjust from the predicted pose; fall back to the
-full frame when that fails. Stage timings are recorded for the benchmark and the
-service's latency report.
+full frame when that fails. With a velocity the constant-velocity prediction is
+usually good to a fraction of a pixel: every target is measured at once in tight
+windows, and only when a disk lies off its window's centre by more than they allow
+does the frame take two stages (see :meth:`FrameMeasurer._measure_roi`). Stage
+timings are recorded for the benchmark and the service's latency report.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from service.core import detect_kernel, geometry_kernels
 from service.core.camera_model import BrownFraser
 from service.core.codes import POSECELL12, CodeFamily
 from service.core.decode import read_codes
+from service.core.decode import warm_up as decode_warm_up
 from service.core.detect import Blobs, DetectSettings, detect_blobs, measure_windows
 from service.core.field import Field
 from service.core.identify import eccentricity_px, match_coded, match_predicted, project_field
@@ -33,19 +37,33 @@ from service.core.tracking import PoseSample, predict_pose
 Array = NDArray[np.float64]
 
 
+def _observations(ids: Sequence[str], uv: Array, residuals: Array, coded: list[bool],
+                  used: list[bool]) -> tuple[TargetObservation, ...]:
+    """TargetObservations of the rows of ``uv`` and ``residuals`` (N, 2) px. A frozen dataclass's
+    ``__init__`` sets each field through ``object.__setattr__``: for the ~230 targets of a frame
+    that cost a fifth of an ROI frame's budget, so the instances are made empty and their fields
+    written to their ``__dict__``; the (u, v) pairs come from zipping the columns as Python floats."""
+    new = object.__new__
+    out = []
+    pairs = zip(uv[:, 0].tolist(), uv[:, 1].tolist(), strict=True)
+    res = zip(residuals[:, 0].tolist(), residuals[:, 1].tolist(), strict=True)
+    for tid, q, r, c, u in zip(ids, pairs, res, coded, used, strict=True):
+        t = new(TargetObservation)
+        d = t.__dict__
+        d["id"], d["uv"], d["residual_px"], d["coded"], d["used"] = tid, q, r, c, u
+        out.append(t)
+    return tuple(out)
+
+
 def pose_result_from_resection(
-    result: ResectionResult, field: Field, ids: Sequence[str], uv: Array
+    result: ResectionResult, field: Field, ids: Sequence[str], uv: Array, rows: NDArray[np.int64] | None = None
 ) -> PoseResult:
-    """Attach target ids, codes and residuals to a resection result."""
-    rows = field.indices_of(list(ids))
+    """Attach target ids, codes and residuals to a resection result (``rows``: the ids' field rows, if known)."""
+    if rows is None:
+        rows = field.indices_of(list(ids))
     # Python scalars first: indexing numpy arrays element by element costs more than the resection
-    coded = (field.codes[rows] >= 0).tolist()
-    targets = tuple(
-        TargetObservation(tid, (q0, q1), (r0, r1), c, u)  # positional: a quarter faster (frozen dataclass)
-        for tid, (q0, q1), (r0, r1), c, u in zip(
-            ids, np.asarray(uv, dtype=np.float64).tolist(), result.residuals_px.tolist(), coded,
-            result.inliers.tolist(), strict=True)
-    )
+    targets = _observations(ids, np.asarray(uv, dtype=np.float64).reshape(-1, 2), result.residuals_px,
+                            (field.codes[rows] >= 0).tolist(), result.inliers.tolist())
     return PoseResult(
         T_field_camera=result.T_field_camera,
         sigma_position_mm=result.sigma_position_mm,
@@ -89,7 +107,7 @@ class MeasureSettings:
     roi: bool = True
     roi_min_fraction: float = 0.7  # of predicted targets found, else full frame
     roi_max_sigma0_px: float = 0.3
-    roi_refine: bool = True  # two-stage ROI: slower, but as precise as the full frame
+    roi_refine: bool = True  # tight windows about a precise prediction: as precise as the full frame
     roi_prediction_error_px: float = 4.0  # how far a target may move from its constant-velocity prediction
     max_sigma0_px: float = 0.5
     code_family: CodeFamily = POSECELL12  # the coded targets' ring code (codes.AICON14 for AICON plates)
@@ -104,6 +122,10 @@ class Outcome:
     timings_ms: dict[str, float]
     n_blobs: int = 0
     rejections: dict[str, int] | None = None
+
+
+#: ROI windows about precise predictions allow this fraction of ``roi_prediction_error_px``
+TIGHT_SLACK = 0.25
 
 
 class _Clock:
@@ -125,10 +147,13 @@ class FrameMeasurer:
         self.field = field
         self.settings = settings or MeasureSettings()
         self._history: deque[PoseSample] = deque(maxlen=2)
+        self._mask: NDArray[np.uint8] | None = None  # detect_blobs' scratch, reused frame after frame
+        self._ids = np.array(field.ids, dtype=object)  # ids by field row, for fancy indexing
         # the compiled kernels, once per process (numba's disk cache makes it a load), so that no
         # frame pays for their compilation
         detect_kernel.warm_up()
         geometry_kernels.warm_up()
+        decode_warm_up()
         self._radius_mm = np.where(
             np.isfinite(field.diameters_mm), field.diameters_mm, np.where(field.is_coded, 10.0, 6.0)
         ) / 2.0
@@ -182,14 +207,18 @@ class FrameMeasurer:
                 f"the targets disagree with the pose by {res.sigma0_px:.2f} px (sigma0), "
                 f"more than {s.max_sigma0_px} px: check the camera calibration and the field",
             )
-        ids = [self.field.ids[r] for r in rows]
-        return pose_result_from_resection(res, self.field, ids, uv)
+        result = pose_result_from_resection(res, self.field, self._ids[rows].tolist(), uv, rows)
+        clock.lap("result")
+        return result
 
     def _measure_full(self, image: NDArray[np.generic]) -> Outcome:
         s = self.settings
         clock = _Clock()
+        shape = np.shape(image)
+        if self._mask is None or self._mask.shape != shape:
+            self._mask = np.empty(shape, dtype=np.uint8) if len(shape) == 2 else None
         try:
-            blobs, rejections = detect_blobs(image, s.detect)
+            blobs, rejections = detect_blobs(image, s.detect, mask_buffer=self._mask)
         except SolveError as e:
             return Outcome(Failure.from_error(e), "full", clock.ms)
         clock.lap("detect")
@@ -227,7 +256,9 @@ class FrameMeasurer:
         coded_blobs = coded.blobs[res.inliers]
         # the paper's second step: every other target, predicted from the coded pose
         rows, uv_pred = project_field(self.camera, self.field, res.T_field_camera, margin_px=-2.0)
-        todo = ~np.isin(rows, coded_rows)
+        todo = np.ones(len(self.field), dtype=bool)
+        todo[coded_rows] = False
+        todo = todo[rows]
         taken = np.zeros(len(blobs), bool)
         taken[coded_blobs] = True
         m = match_predicted(uv_pred[todo], rows[todo], blobs.uv, s.match_tolerance_px, taken)
@@ -241,15 +272,21 @@ class FrameMeasurer:
     def _measure_roi(self, image: NDArray[np.generic], T_pred: Array, slack: float = 1.0) -> Outcome | None:
         s = self.settings
         clock = _Clock()
-        rows, uv_pred = project_field(self.camera, self.field, T_pred, margin_px=4.0)
+        rows, uv_pred, depth = project_field(self.camera, self.field, T_pred, margin_px=4.0, with_depth=True)
         if len(rows) < s.min_targets:
             return None
-        if s.roi_refine:
+        measured = None
+        if s.roi_refine and slack <= 1.0:
+            # with a velocity the prediction is usually far better than the allowance: measure every
+            # target in tight windows right away, and keep that only if each disk lies as close to
+            # its window's centre as the tight windows are made for (else: two stages, below)
+            measured = self._measure_targets(image, rows, uv_pred, depth, TIGHT_SLACK, check_centred=True)
+        if measured is None and s.roi_refine:
             # stage 1: locate the uncoded targets in generous windows and re-solve the pose, so
             # that stage 2 can measure every target (coded ones too, whose windows must stay
             # inside the ring's gap) in tight windows around precise predictions
             uncoded = self.field.codes[rows] < 0
-            half = self._window_half_size(rows[uncoded], T_pred, slack)
+            half = self._window_half_size(rows[uncoded], depth[uncoded], slack)
             try:
                 blobs, found = measure_windows(image, uv_pred[uncoded], half, s.detect)
                 ok = found >= 0
@@ -259,33 +296,50 @@ class FrameMeasurer:
                                 sigma_px=s.sigma_px, T_field_camera_init=T_pred).T_field_camera
             except (ValueError, SolveError):
                 return None
-            rows, uv_pred = project_field(self.camera, self.field, T_pred, margin_px=4.0)
-            slack = 0.25
-        half = self._window_half_size(rows, T_pred, slack)
-        try:
-            blobs, found = measure_windows(image, uv_pred, half, s.detect)
-        except (ValueError, SolveError):
-            return None
+            rows, uv_pred, depth = project_field(self.camera, self.field, T_pred, margin_px=4.0, with_depth=True)
+            slack = TIGHT_SLACK
+        if measured is None:
+            measured = self._measure_targets(image, rows, uv_pred, depth, slack)
         clock.lap("windows")
-        ok = found >= 0
-        if ok.sum() < max(s.min_targets, s.roi_min_fraction * len(rows)):
+        if measured is None:
             return None
+        rows_ok, uv_ok = measured
         try:
-            result = self._finish(rows[ok], blobs.uv[found[ok]], T_pred, clock)
+            result = self._finish(rows_ok, uv_ok, T_pred, clock)
         except SolveError:
             return None
         if result.sigma0_px > s.roi_max_sigma0_px:
             return None
-        return Outcome(result, "roi", clock.ms, int(ok.sum()))
+        return Outcome(result, "roi", clock.ms, len(rows_ok))
 
-    def _window_half_size(self, rows: NDArray[np.int64], T_field_camera: Array, slack: float = 1.0) -> NDArray[np.int64]:
-        """Half window (px) per target: the disk's image radius, the blur, and the prediction error.
+    def _measure_targets(self, image: NDArray[np.generic], rows: NDArray[np.int64], uv_pred: Array, depth: Array,
+                         slack: float, check_centred: bool = False) -> tuple[NDArray[np.int64], Array] | None:
+        """Field rows and measured pixels (N, 2) of the targets found in windows about their
+        predictions; None when too few are found or, with ``check_centred``, when a disk lies
+        further from its window's centre than ``slack`` times the prediction allowance."""
+        s = self.settings
+        half = self._window_half_size(rows, depth, slack)
+        try:
+            blobs, found = measure_windows(image, uv_pred, half, s.detect)
+        except (ValueError, SolveError):
+            return None
+        ok = found >= 0
+        if ok.sum() < max(s.min_targets, s.roi_min_fraction * len(rows)):
+            return None
+        uv = blobs.uv[found[ok]]
+        if check_centred:
+            off = uv - np.rint(uv_pred[ok])
+            if np.max(off[:, 0] ** 2 + off[:, 1] ** 2) > (slack * s.roi_prediction_error_px) ** 2:
+                return None
+        return rows[ok], uv
+
+    def _window_half_size(self, rows: NDArray[np.int64], depth: Array, slack: float = 1.0) -> NDArray[np.int64]:
+        """Half window (px) per target at ``depth`` (mm): the disk's image radius, the blur, and the prediction error.
 
         A coded target's window stays inside its dark gap (the ring starts at 2 R; the
         square window's corners and the blur need the margin).
         """
         s = self.settings
-        depth = np.abs((self.field.xyz[rows] - T_field_camera[:3, 3]) @ T_field_camera[:3, 2])
         r_px = self._radius_mm[rows] * self.camera.c_mm / np.maximum(depth, 1.0) / self.camera.mean_pixel_size_mm
         half = np.ceil(r_px + 3.0 + slack * s.roi_prediction_error_px)
         coded = self.field.codes[rows] >= 0

@@ -138,3 +138,37 @@ def test_unmeasurable_frames_are_failures_with_a_reason(cell, make_image, reason
     assert isinstance(outcome.result, Failure)
     assert outcome.result.reason == reason
     assert outcome.result.message
+
+
+def test_roi_tracking_measures_once_when_the_prediction_holds_and_re_solves_when_it_does_not(cell, monkeypatch):
+    # With a velocity, every target is measured at once in tight windows about the constant-velocity
+    # prediction; a disk off its window's centre by more than the tight allowance (1 px) sends the
+    # frame through the two stages (generous windows, new pose, tight windows) and it still tracks.
+    from service import pipeline
+
+    camera, field = cell
+    calls: list[int] = []
+    real = pipeline.measure_windows
+
+    def spy(image, uv, half, settings):
+        calls.append(len(uv))
+        return real(image, uv, half, settings)
+
+    monkeypatch.setattr(pipeline, "measure_windows", spy)
+    rng = np.random.default_rng(11)
+    measurer = FrameMeasurer(camera, field)
+    # ~1.8 px per frame along u; frame 4 is 1.5 mm (~2.7 px) off the constant-velocity path, frame 5
+    # goes on at the new velocity
+    shifts_mm = [0.0, 1.0, 2.0, 3.0, 5.5, 8.0]
+    windows_per_frame, errors = [], []
+    for k, x in enumerate(shifts_mm):
+        T = reference_pose(view_angle_deg=85.0, distance_mm=1000.0, look_at_mm=(x, 0.0, 0.0))
+        calls.clear()
+        outcome = measurer.measure(render_frame(camera, field, T, RenderSettings(), rng).image, t_s=0.01 * k)
+        assert isinstance(outcome.result, PoseResult), (k, outcome.result)
+        assert outcome.mode == ("full" if k == 0 else "roi")
+        windows_per_frame.append(len(calls))
+        errors.append(pose_difference(outcome.result.T_field_camera, T)[0])
+    # frame 1 has no velocity yet: two stages; 2, 3 and 5 hold; 4 does not
+    assert windows_per_frame == [0, 2, 1, 1, 3, 1]
+    assert max(errors) < 0.1

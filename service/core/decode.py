@@ -22,8 +22,9 @@ whose ``v`` runs down, as a mirror image. So the ring reads counter-clockwise
 on a screen, the way the target's sectors are numbered. Reading it the other
 way round would turn a non-palindromic code into another valid code.
 
-Steps, for all targets at once (``read_codes``; about 0.18 ms per coded target in a batch of
-30, about 6 ms for a reference frame's 200 blobs):
+Steps, per target in one compiled loop (``read_codes`` calls
+:func:`~service.core.decode_kernel.read_rings_kernel`; about 45 us per coded target, 1.4 ms
+for a reference frame's 30; the former array expressions took 5.6 ms, the same readings):
 
 0. Look cheaply for anything bright in the ring zone. Uncoded blobs stop here.
 1. Re-fit the disk ellipse to the disk's half-level edge along 24 rays, with a
@@ -76,10 +77,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 
-import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.core import decode_kernel
 from service.core.codes import POSECELL12, CodeFamily, family_word_table
 
 Array = NDArray[np.float64]
@@ -153,15 +154,45 @@ def _pattern(family: CodeFamily) -> tuple[Array, int, int]:
     return np.concatenate([disk, gap, ring]), len(disk), len(gap)
 
 
+@dataclass(frozen=True)
+class _Layout:
+    """A family's sample points and constants for :func:`~service.core.decode_kernel.read_rings_kernel`."""
+
+    ring_pts: Array  # (1 + 12 + 3 * 48, 2): the disk's centre, the gap, the ring zone (a cheap look)
+    refine_pts: Array  # (R * D, 2): radii x ray directions of the edge search
+    rho: Array  # (R,) disk radii of the edge search
+    dirs: Array  # (D, 2)
+    lo_index: int  # np.percentile(..., 20)'s interpolation over the outer R * D samples
+    lo_gamma: float
+    pts: Array  # (P, 2): disk, gap, ring (see _pattern)
+    n_disk: int
+    n_gap: int
+    core_a: int  # a sector core's first sample
+
+
+EDGE_STEP = 0.1  # radii between the edge search's samples
+
+
 @lru_cache(maxsize=4)
-def _core_index(n_bits: int) -> NDArray[np.intp]:
-    """Indices (S * K * 2,) into the 5-sample running means of the profile: the two halves of the
-    core of every sector at every phase, ordered (phase, sector, half)."""
-    S, K = SAMPLES_PER_SECTOR, n_bits
+def _layout(family: CodeFamily) -> _Layout:
+    r0, r1 = family.ring_inner + 0.2, family.ring_outer - 0.2
+    ring_pts = np.concatenate([np.zeros((1, 2)), 1.5 * _unit_circle(12), r0 * _unit_circle(48),
+                               0.5 * (r0 + r1) * _unit_circle(48), r1 * _unit_circle(48)])
+    # No further out than mid-gap, so that a ring squeezed against the disk by a steep view cannot
+    # be taken for the disk's edge.
+    rho = np.arange(0.4, 1.55, EDGE_STEP)
+    dirs = _unit_circle(24)
+    # the background level under the edge: the 20th percentile of the samples beyond 1.25 R, with
+    # numpy's linear interpolation (virtual index n q + (1 - q) - 1)
+    n_out, q = int(np.sum(rho > 1.25)) * len(dirs), np.true_divide(20, 100)
+    virtual = n_out * q + (1 + q * (1 - 1 - 1)) - 1
+    pts, n_disk, n_gap = _pattern(family)
+    S = SAMPLES_PER_SECTOR
     a, b = (round(f * S) for f in SECTOR_CORE)
-    assert b - S // 2 == S // 2 - a == RUN - 1
-    idx = np.arange(S)[:, None, None] + S * np.arange(K)[None, :, None] + np.array([a, S // 2])
-    return (idx % (S * K)).ravel()
+    assert b - S // 2 == S // 2 - a == RUN - 1  # the two halves of a core are runs of RUN samples
+    return _Layout(ring_pts=ring_pts, refine_pts=(rho[:, None, None] * dirs[None]).reshape(-1, 2), rho=rho,
+                   dirs=dirs, lo_index=int(np.floor(virtual)), lo_gamma=float(virtual - np.floor(virtual)),
+                   pts=pts, n_disk=n_disk, n_gap=n_gap, core_a=a)
 
 
 def _check_ellipses(ellipses: ArrayLike) -> Array:
@@ -172,251 +203,6 @@ def _check_ellipses(ellipses: ArrayLike) -> Array:
         raise ValueError(
             f"ellipses must be (N, 5) = (u_c, v_c, a_px, b_px, angle_rad), got shape {e.shape}")
     return e
-
-
-def _affine(e: Array) -> Array:
-    """M (N, 2, 2) = Rot(angle) @ diag(a, b): the unit circle onto each ellipse."""
-    ca, sa = np.cos(e[:, 4]), np.sin(e[:, 4])
-    M = np.empty((len(e), 2, 2))
-    M[:, 0, 0], M[:, 0, 1] = ca * e[:, 2], -sa * e[:, 3]
-    M[:, 1, 0], M[:, 1, 1] = sa * e[:, 2], ca * e[:, 3]
-    return M
-
-
-def _sample(img: NDArray[np.generic], e: Array, M: Array, pts: Array) -> Array:
-    """Bilinear image values (N, P) at normalised points (P, 2) of each ellipse; NaN outside.
-
-    ``cv2.remap`` is used because it is about ten times faster than ``map_coordinates`` here. It
-    quantises positions to 1/32 px and rounds integer images to whole DN, which is far below
-    what reading a ring needs.
-    """
-    # by broadcasting: a stack of (P, 2) @ (2, 2) products is slower
-    u = (e[:, 0:1] + M[:, 0, 0:1] * pts[:, 0] + M[:, 0, 1:2] * pts[:, 1]).astype(np.float32)  # (N, P)
-    v = (e[:, 1:2] + M[:, 1, 0:1] * pts[:, 0] + M[:, 1, 1:2] * pts[:, 1]).astype(np.float32)
-    h, w = img.shape
-    vals = cv2.remap(img, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-    return np.where(inside, vals.astype(np.float64), np.nan)
-
-
-def _ellipse_from_conic(coef: Array) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
-    """Centre (N, 2), semi-axes (N, 2), axis angle (N,) and a valid mask (N,) of conics (N, 5).
-
-    The conic is ``A x^2 + B xy + C y^2 + D x + E y = 1``.
-    """
-    A, B, C, D, E = coef.T
-    Q = np.stack([np.stack([A, B / 2], -1), np.stack([B / 2, C], -1)], -2)  # (N, 2, 2)
-    det = A * C - B * B / 4
-    ok = det > 0
-    Qs = np.where(ok[:, None, None], Q, np.eye(2))
-    c = -0.5 * np.linalg.solve(Qs, np.stack([D, E], -1)[..., None])[..., 0]
-    mu = 1.0 + 0.5 * (D * c[:, 0] + E * c[:, 1])  # 1 - c'Qc - b'c with c = -Q^-1 b / 2
-    lam, V = np.linalg.eigh(Qs / np.where(mu > 0, mu, 1.0)[:, None, None])
-    ok &= (mu > 0) & np.all(lam > 0, axis=1)
-    axes = 1.0 / np.sqrt(np.where(lam > 0, lam, 1.0))
-    angle = np.arctan2(V[:, 1, 0], V[:, 0, 0])
-    return c, axes, angle, ok
-
-
-def _row_median(x: Array) -> Array:
-    """Median of the finite values of each row of ``x`` (N, D); NaN for a row without any."""
-    srt = np.sort(np.where(np.isfinite(x), x, np.inf), axis=1)
-    k = np.isfinite(x).sum(axis=1)
-    rows = np.arange(len(x))
-    lo, hi = np.maximum((k - 1) // 2, 0), np.maximum(k // 2, 0)
-    with np.errstate(invalid="ignore"):
-        med = 0.5 * (srt[rows, lo] + srt[rows, np.minimum(hi, x.shape[1] - 1)])
-    return np.where(k > 0, med, np.nan)
-
-
-def _fit_conic(pts_px: Array, weight: NDArray[np.bool_], size: Array
-               ) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
-    """Direct least-squares conic through the weighted points (N, D, 2), px, about a centre.
-
-    Returns the centre offset (N, 2) px, semi-axes (N, 2) px, axis angle (N,) rad and a valid mask.
-    """
-    pts = pts_px / size[:, None, None]  # conditioning
-    px, py = pts[..., 0], pts[..., 1]
-    G = np.stack([px * px, px * py, py * py, px, py], -1) * weight[..., None]  # (N, D, 5)
-    GtG = G.transpose(0, 2, 1) @ G
-    # Rows with too few points are judged by the caller; keep their systems solvable.
-    GtG += (1e-9 * np.trace(GtG, axis1=1, axis2=2) + 1e-12)[:, None, None] * np.eye(5)
-    coef = np.linalg.solve(GtG, G.transpose(0, 2, 1) @ weight.astype(np.float64)[..., None])[..., 0]
-    c, axes, angle, ok = _ellipse_from_conic(coef)
-    return c * size[:, None], axes * size[:, None], angle, ok
-
-
-def _refine_ellipse(img: NDArray[np.generic], e: Array) -> Array:
-    """Re-fit each disk ellipse (N, 5) to the disk's half-level edge, found along 24 rays.
-
-    An ellipse fitted to a pixel contour, or thresholded at another level, is
-    off by a fraction of a pixel. On an 8 px disk that is 10-25 % of the
-    radius, and a few degrees of axis angle on a foreshortened disk. The ring
-    sits 2-3 radii out and is read in the disk's de-stretched frame, so both
-    errors are magnified there. The edge points come from radial profiles
-    normalised between the disk centre and the dark gap; a direct conic fit
-    (corrected for blur, see below) goes through them. Where that fit is not
-    trustworthy, only a common size offset is applied, or the input is kept.
-    """
-    n = len(e)
-    M = _affine(e)
-    step = 0.1
-    # Search no further out than mid-gap, so that a ring squeezed against the disk by a steep view
-    # cannot be taken for the disk's edge.
-    rho = np.arange(0.4, 1.55, step)
-    dirs = _unit_circle(24)
-    vals = _sample(img, e, M, (rho[:, None, None] * dirs[None]).reshape(-1, 2))
-    # A disk too close to the image border cannot be decoded anyway (its ring leaves the image).
-    prof = np.nan_to_num(vals, nan=0.0).reshape(n, len(rho), len(dirs))  # (N, radius, direction)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        hi = np.median(prof[:, 0], axis=1)
-        lo = np.percentile(prof[:, rho > 1.25].reshape(n, -1), 20, axis=1)
-        x = (prof - lo[:, None, None]) / (hi - lo)[:, None, None]
-        below = x < 0.5
-        i1 = np.argmax(below, axis=1)  # first sample below half level, per direction
-        found = below.any(axis=1) & (i1 > 0)
-        i1 = np.clip(i1, 1, len(rho) - 1)
-        x0 = np.take_along_axis(x, (i1 - 1)[:, None, :], axis=1)[:, 0]
-        x1 = np.take_along_axis(x, i1[:, None, :], axis=1)[:, 0]
-        r50 = rho[i1 - 1] + step * (x0 - 0.5) / (x0 - x1)
-    found &= np.isfinite(r50) & (hi > lo)[:, None]
-    r50 = np.where(found, r50, 1.0)
-    out = e.copy()
-
-    # Direct conic fit to the edge points, in coordinates centred on the input ellipse and scaled
-    # by its size (for conditioning); rays without an edge get zero weight.
-    size = np.sqrt(e[:, 2] * e[:, 3])
-    ray_px = dirs @ M.transpose(0, 2, 1)  # (N, D, 2): image offset per unit of rho along each ray
-    rim_px = np.linalg.norm(ray_px, axis=2)
-    c_px, axes_px, angle, ok = _fit_conic(r50[..., None] * ray_px, found, size)
-    # Blur rounds the disk: the half-level contour of a blurred edge moves inwards by about
-    # sigma^2 / 2 times its curvature (the heat equation's curvature flow), which shortens a
-    # foreshortened disk's long axis. On an 8 px disk at 60 deg with 1 px of blur that is a
-    # tenth of the axis, and it turns the ring's sectors. So estimate sigma from the edge slope,
-    # push each edge point out by the flow, and fit again.
-    with np.errstate(invalid="ignore", divide="ignore"):
-        slope_px = (x0 - x1) / step / rim_px  # normalised level per px at the crossing
-        var_px = np.where(found & (slope_px > 0), 1.0 / (2 * np.pi * slope_px**2), np.nan)
-        sigma_px = np.sqrt(_row_median(var_px))
-        rel = r50[..., None] * ray_px - c_px[:, None, :]
-        ca, sa = np.cos(angle)[:, None], np.sin(angle)[:, None]
-        u = (ca * rel[..., 0] + sa * rel[..., 1]) / axes_px[:, None, 0]
-        v = (-sa * rel[..., 0] + ca * rel[..., 1]) / axes_px[:, None, 1]
-        t = np.arctan2(v, u)
-        A, B = axes_px[:, None, 0], axes_px[:, None, 1]
-        kappa = A * B / (A**2 * np.sin(t) ** 2 + B**2 * np.cos(t) ** 2) ** 1.5
-        shift = 0.5 * sigma_px[:, None] ** 2 * kappa / rim_px
-    shift = np.where(np.isfinite(shift) & ok[:, None], np.minimum(shift, 0.5), 0.0)
-    c_px, axes_px, angle, ok2 = _fit_conic((r50 + shift)[..., None] * ray_px, found, size)
-    ok &= ok2
-    ok &= found.sum(axis=1) >= 16
-    b0 = np.minimum(e[:, 2], e[:, 3])
-    # Trust the fit only near the input: an edge ray that ran into a neighbour must not drag it.
-    ok &= (np.hypot(c_px[:, 0], c_px[:, 1]) < 0.5 * b0 + 0.5)
-    ratio = np.sort(axes_px, axis=1) / np.sort(e[:, 2:4], axis=1)  # (minor, major) new / old
-    ok &= (ratio[:, 0] > 0.6) & (ratio[:, 0] < 1.6) & (ratio[:, 1] > 0.75) & (ratio[:, 1] < 1.33)
-    out[ok, :2] = e[ok, :2] + c_px[ok]
-    out[ok, 2], out[ok, 3], out[ok, 4] = axes_px[ok, 0], axes_px[ok, 1], angle[ok]
-
-    # Fallback: one common size offset (px) from the median edge distance.
-    fb = ~ok & (found.sum(axis=1) >= 8)
-    if np.any(fb):
-        offset = np.where(found[fb], (r50[fb] - 1.0) * rim_px[fb], np.nan)
-        delta = _row_median(offset)
-        delta = np.where(np.abs(delta) < 0.5 * b0[fb], delta, 0.0)
-        out[fb, 2] += delta
-        out[fb, 3] += delta
-    return out
-
-
-def _measure(img: NDArray[np.generic], e: Array, background_dn: Array | None,
-             family: CodeFamily) -> dict[str, Array]:
-    """All intermediate arrays of the reading, for (N,) ellipses."""
-    n = len(e)
-    S, K = SAMPLES_PER_SECTOR, family.n_bits
-    n_angles = K * S
-    n_radii = len(family.ring_radii)
-    M = _affine(e)
-    pts, n_disk, n_gap = _pattern(family)
-    vals = _sample(img, e, M, pts)
-    inside = np.all(np.isfinite(vals), axis=1)
-    vals = np.where(inside[:, None], vals, 0.0)
-    disk_s = vals[:, :n_disk]
-    gap_s = vals[:, n_disk:n_disk + n_gap]
-    ring = vals[:, n_disk + n_gap:].reshape(n, n_radii, n_angles)
-
-    disk_dn = np.median(disk_s, axis=1)
-    gap_dn = np.median(gap_s, axis=1)
-    bg_dn = gap_dn if background_dn is None else background_dn
-    # Noise from differences of angular neighbours in the gap: blur leaks the disk and the ring into
-    # the gap of a small target, which changes its level radially but hardly between neighbours.
-    ring_gap = gap_s.reshape(n, len(GAP_RADII), -1)
-    diffs = (ring_gap - np.roll(ring_gap, 1, axis=2)).reshape(n, -1)
-    noise_dn = 1.4826 / np.sqrt(2) * np.median(np.abs(diffs), axis=1)
-    gap_ang = ring_gap.mean(axis=1)
-    contrast = disk_dn - bg_dn
-    scale = np.where(contrast > 0, contrast, 1.0)
-    profile_r = (ring - bg_dn[:, None, None]) / scale[:, None, None]  # (N, radius, K*S)
-    profile = profile_r.mean(axis=1)  # sample j at t = j*dt
-
-    # Sector levels for every phase on the sample grid (sector m of phase j starts at t = j + 0.5 +
-    # m*S samples), each in four parts of the sector's core: inner/outer radii x first/second
-    # half. A misplaced ring, or a sector smeared into its neighbour, makes the parts disagree.
-    # (N, 2, K*S): inner and outer radii
-    h = n_radii // 2
-    prof2 = np.stack([profile_r[:, :h].mean(axis=1), profile_r[:, h:].mean(axis=1)], axis=1)
-    mid = 0.5 * (prof2 + np.roll(prof2, -1, axis=2))  # value at t = i + 0.5 samples
-    # Running means of RUN consecutive samples (wrapping round), then one gather for all phases.
-    wrapped = np.concatenate([mid, mid[:, :, : RUN - 1]], axis=2)
-    csum = np.concatenate([np.zeros((n, 2, 1)), np.cumsum(wrapped, axis=2)], axis=2)
-    run_mean = (csum[:, :, RUN:] - csum[:, :, :-RUN]) / RUN  # (N, 2, K*S): mean of mid[i..i+RUN-1]
-    part = run_mean[:, :, _core_index(K)].reshape(n, 2, S, K, 2)  # (N, radius, phase, K, half)
-    part = part.transpose(0, 2, 3, 1, 4).reshape(n, S, K, 4)
-    levels_all = part.mean(axis=3)  # (N, phase, K)
-
-    # Adaptive threshold per phase: split the sorted levels at their widest gap. The margin lies
-    # between the worst parts: the darkest part of any bright sector and the brightest part of any
-    # dark one. The phase with the widest margin wins. Maximising the margin directly, not the edge
-    # energy, keeps a blurred run of two sectors from being read half a sector off.
-    srt = np.sort(levels_all, axis=2)
-    g = np.argmax(np.diff(srt, axis=2), axis=2)[..., None]
-    thr_all = 0.5 * (np.take_along_axis(srt, g, axis=2)
-                     + np.take_along_axis(srt, g + 1, axis=2))[..., 0]
-    bits_all = levels_all > thr_all[..., None]
-    margin_all = (np.where(bits_all, part.min(axis=3), np.inf).min(axis=2)
-                  - np.where(bits_all, -np.inf, part.max(axis=3)).max(axis=2))  # (N, phase)
-    # A flat ring (all levels equal) puts every sector in one class: no margin at all.
-    margin_all = np.where(np.isfinite(margin_all), margin_all, -1.0)
-    rows = np.arange(n)
-    j = np.argmax(margin_all, axis=1)
-    levels, bits = levels_all[rows, j], bits_all[rows, j]
-    margin, thr = margin_all[rows, j], thr_all[rows, j]
-    # Sub-sample phase, for the roll only. The margin is flat near its best, so take the sector
-    # edges instead: the edge between samples i and i+1 (at t = i + 0.5) folded onto one sector,
-    # searched within a quarter sector of the chosen phase, then a parabola through the peak.
-    edge = np.abs(np.roll(profile, -1, axis=1) - profile).reshape(n, K, S).sum(axis=1)  # (N, S)
-    window = (j[:, None] + np.arange(-(S // 4), S // 4 + 1)[None, :]) % S
-    best = np.argmax(np.take_along_axis(edge, window, axis=1), axis=1)
-    jj = window[rows, best]
-    em, e0, ep = edge[rows, (jj - 1) % S], edge[rows, jj], edge[rows, (jj + 1) % S]
-    denom = em - 2 * e0 + ep
-    with np.errstate(invalid="ignore", divide="ignore"):
-        frac = np.where(denom < 0, 0.5 * (em - ep) / np.where(denom < 0, denom, -1.0), 0.0)
-    phase = j + 0.5 + (((jj - j + S // 2) % S) - S // 2) + np.clip(np.nan_to_num(frac), -0.5, 0.5)
-    words = (bits.astype(np.int64) << np.arange(K)).sum(axis=1)
-    code_of, roll_of = family_word_table(family)
-    codes, rolls = code_of[words], roll_of[words]
-
-    # Read sector m is the target's sector m - roll, whose start theta = (m - roll) * 360/K deg
-    # lies at t = phase + m * S samples; theta = phi + t gives phi.
-    phi = -(rolls * S + phase) * (2 * np.pi / n_angles)
-    d = (M @ np.stack([np.cos(phi), np.sin(phi)], axis=-1)[..., None])[..., 0]
-    roll_deg = np.degrees(np.arctan2(-d[:, 1], d[:, 0]))
-    return {"inside": inside, "disk_dn": disk_dn, "background_dn": bg_dn, "noise_dn": noise_dn,
-            "contrast": contrast, "levels": levels, "margin": margin, "threshold": thr,
-            "bits": bits,
-            "codes": codes, "rolls": rolls, "roll_deg": roll_deg, "phase": phase,
-            "gap_spread": (gap_ang.max(axis=1) - gap_ang.min(axis=1)) / scale}
 
 
 def read_codes(
@@ -478,108 +264,42 @@ def read_codes(
     img = np.asarray(image)
     if img.ndim != 2:
         raise ValueError(f"image must be a 2-D grey image, got shape {img.shape}")
-    if img.dtype not in (np.uint8, np.uint16, np.int16, np.float32, np.float64):
-        img = img.astype(np.float32)
+    # 8- and 16-bit images are read as they are (each its own compiled kernel); any other type as
+    # float64, rounded like an integer image where it is one
+    integer = img.dtype in (np.uint8, np.uint16, np.int16)
+    if img.dtype == np.uint8:
+        mode = decode_kernel.FIXED8
+    elif img.dtype == np.uint16:
+        mode = decode_kernel.ROUNDED
+    else:
+        img = img.astype(np.float64)
+        mode = decode_kernel.ROUNDED if integer else decode_kernel.FLOAT
     e = _check_ellipses(ellipses)
     n = len(e)
     if n == 0:
         return []
-    bg = None
+    bg = np.full(n, np.nan)
     if background_dn is not None:
-        bg = np.broadcast_to(np.asarray(background_dn, dtype=np.float64), (n,)).copy()
-    # A degenerate ellipse from the blob detector is read as "no code", computed on a stand-in.
+        bg[:] = np.broadcast_to(np.asarray(background_dn, dtype=np.float64), (n,))
+    # A degenerate ellipse from the blob detector is read as "no code".
     valid = np.all(np.isfinite(e), axis=1) & (e[:, 2] > 0) & (e[:, 3] > 0)
     e = np.where(valid[:, None], e, np.array([0.0, 0.0, 1.0, 1.0, 0.0]))
-    # The pipeline hands over every blob, most of them uncoded: a cheap look for any bright ring
-    # first, so that the full reading runs only where there may be one.
-    out: list[CodeReading | None] = [None] * n
-    todo = np.flatnonzero(valid & _may_have_ring(img, e, family))
-    if len(todo) == 0:
-        return out
-    readings = _read(img, e[todo], None if bg is None else bg[todo], min_confidence, min_snr,
-                     min_minor_px, min_diameter_px, min_margin_snr, family)
-    for i, reading in zip(todo, readings, strict=True):
-        out[i] = reading
-    return out
-
-
-def _may_have_ring(img: NDArray[np.generic], e: Array, family: CodeFamily) -> NDArray[np.bool_]:
-    """Whether anything in the ring zone is clearly brighter than the gap, per ellipse (N,).
-
-    Generous on purpose: radii from 0.2 R inside the ring's inner edge to 0.2 R inside its outer
-    edge (2.2-3.0 R for posecell's ring) cover ellipses that are 10-30 % off, and a quarter of
-    the disk's contrast is far below a bright sector's level.
-    """
-    r0, r1 = family.ring_inner + 0.2, family.ring_outer - 0.2
-    pts = np.concatenate([np.zeros((1, 2)), 1.5 * _unit_circle(12), r0 * _unit_circle(48),
-                          0.5 * (r0 + r1) * _unit_circle(48), r1 * _unit_circle(48)])
-    vals = _sample(img, e, _affine(e), pts)
-    disk, gap, ring = vals[:, 0], np.median(vals[:, 1:13], axis=1), vals[:, 13:]
-    with np.errstate(invalid="ignore"):
-        ring_max = np.max(np.where(np.isfinite(ring), ring, -np.inf), axis=1)
-        return (disk > gap) & (ring_max - gap > 0.25 * (disk - gap))
-
-
-def _read(img: NDArray[np.generic], e: Array, bg: Array | None, min_confidence: float,
-          min_snr: float, min_minor_px: float, min_diameter_px: float,
-          min_margin_snr: float, family: CodeFamily) -> list[CodeReading | None]:
-    """The full reading of :func:`read_codes` for valid ellipses (N, 5)."""
-    n = len(e)
-    # Read the ring twice: with the given ellipse and with its re-fit to the disk edge. Each can
-    # be the worse one. A contour fit is off by a fraction of a pixel, while the re-fit of a dim,
-    # noisy 8 px disk can turn by 10 deg. A reading counts when it passes every check, and the
-    # two readings must not name different codes.
-    e_fit = _refine_ellipse(img, e)
-    both = np.concatenate([e, e_fit])
+    L = _layout(family)
+    code_of, roll_of = family_word_table(family)
     # Integer images quantise weak noise to a zero spread; count at least the rounding error then.
-    noise_floor_dn = 0.3 if np.issubdtype(img.dtype, np.integer) else 0.0
-    r = _measure(img, both, None if bg is None else np.r_[bg, bg], family)
-    b_px = np.minimum(both[:, 2], both[:, 3])
-    a_px = np.maximum(both[:, 2], both[:, 3])
-    good = (
-        r["inside"]
-        # Below this the ring is under 2 px wide across the minor axis and blur mixes its sectors.
-        & (b_px >= min_minor_px)
-        & (2 * a_px >= min_diameter_px)
-        & (b_px >= MIN_AXIS_RATIO * a_px)
-        & (r["contrast"] > min_snr * np.maximum(r["noise_dn"], noise_floor_dn))
-        & (r["margin"] >= min_confidence)
-        & (r["margin"] * r["contrast"]
-           >= min_margin_snr * np.maximum(r["noise_dn"], noise_floor_dn))
-        # The gap between disk and ring must be dark all round. Where blur and a steep view
-        # squeeze the ring into it, the disk ellipse is too wide to place the ring.
-        & (r["gap_spread"] <= MAX_GAP_SPREAD)
-        # The threshold must split the ring into "like the gap" and "like the disk".
-        & (r["threshold"] > 0.1) & (r["threshold"] < 0.8)
-        # A sector far brighter than the disk is not the target's own ring.
-        & (r["levels"].max(axis=1) <= MAX_SECTOR_LEVEL)
-        & (r["codes"] > 0)
-    )
-    g_in, g_fit = good[:n], good[n:]
-    code_in, code_fit = r["codes"][:n], r["codes"][n:]
-    conflict = g_in & g_fit & (code_in != code_fit)
-    # Of two agreeing readings, report the one with the wider margin.
-    use_fit = g_fit & (~g_in | (r["margin"][n:] >= r["margin"][:n]))
-    ok = (g_in | g_fit) & ~conflict
-    pick = np.where(use_fit, n + np.arange(n), np.arange(n))
-    r = {k: v[pick] for k, v in r.items()}
-    e_fit = both[pick]
-    # Target sector k was read as sector k + roll.
-    own = (np.arange(family.n_bits)[None, :] + r["rolls"][:, None]) % family.n_bits
-    bits = np.take_along_axis(r["bits"], own, axis=1)
-    levels = np.take_along_axis(r["levels"], own, axis=1)
+    limits = np.array([min_confidence, min_snr, min_minor_px, min_diameter_px, min_margin_snr,
+                       MIN_AXIS_RATIO, MAX_GAP_SPREAD, MAX_SECTOR_LEVEL], dtype=np.float64)
+    ok, codes, values, bits, levels, used = decode_kernel.read_rings_kernel(
+        np.ascontiguousarray(img), mode, np.ascontiguousarray(e), valid, bg, L.ring_pts, L.refine_pts, L.rho,
+        EDGE_STEP, L.dirs, L.lo_index, L.lo_gamma, L.pts, L.n_disk, L.n_gap, len(family.ring_radii),
+        family.n_bits, SAMPLES_PER_SECTOR, L.core_a, RUN, code_of, roll_of, 0.3 if integer else 0.0, limits)
     out: list[CodeReading | None] = [None] * n
-    for i in np.flatnonzero(ok):
-        out[i] = CodeReading(
-            code=int(r["codes"][i]),
-            roll_deg=float(r["roll_deg"][i]),
-            confidence=float(r["margin"][i]),
-            bits=bits[i],
-            levels=levels[i],
-            disk_dn=float(r["disk_dn"][i]),
-            background_dn=float(r["background_dn"][i]),
-            ellipse=e_fit[i],
-        )
+    K = decode_kernel
+    values_py, codes_py = values.tolist(), codes.tolist()  # Python scalars in one go
+    for i in np.flatnonzero(ok).tolist():
+        v = values_py[i]
+        out[i] = CodeReading(codes_py[i], v[K.ROLL_DEG], v[K.CONFIDENCE], bits[i], levels[i], v[K.DISK_DN],
+                             v[K.BACKGROUND_DN], used[i])
     return out
 
 
@@ -598,3 +318,12 @@ def read_code(
     """
     return read_codes(image, [ellipse], None if background_dn is None else [background_dn],
                       min_confidence=min_confidence, family=family)[0]
+
+
+@lru_cache(maxsize=1)  # once per process
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the reader's kernel for 8-bit images, so that no
+    frame pays for it. Cheap after the first call in a process."""
+    image = np.zeros((48, 48), dtype=np.uint8)
+    image[20:28, 20:28] = 200
+    read_codes(image, [(23.5, 23.5, 4.0, 4.0, 0.0)])

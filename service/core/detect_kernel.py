@@ -10,7 +10,8 @@ the arithmetic on a few hundred small windows (ROI tracking at >= 1 kHz).
 :func:`measure_windows_kernel` returns the measurements as the rows of one
 (NF, n) array, named by the constants below (``detect._Measured`` holds them
 as fields); :func:`assess_kernel` turns them into reasons, sigma_px and fill;
-:func:`contour_sums_kernel` does the polygon sums of the full frame's contours.
+:mod:`service.core.contour_kernel` does the full frame's contours and
+:mod:`service.core.crowd_kernel` the work on blobs near each other.
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from functools import lru_cache
 
 import numpy as np
 from numba import njit
+
+from service.core import contour_kernel, crowd_kernel
 
 # rows of the float output
 UV, ELLIPSE, FLUX, LEVEL, PEAK, BACKGROUND, SB2, K_SHOT, VAR_BASE, VAR_PER_K = 0, 0, 5, 6, 7, 8, 9, 10, 11, 12
@@ -154,9 +157,9 @@ def _window(P, pv, ph, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, 
     # -- the peak and the saturated pixels, of the image's values
     pk = img[v0, u0]
     for a in range(s):
-        row = img[v0 + a]
-        for b in range(u0, u0 + s):
-            pk = max(pk, row[b])
+        seg_row = img[v0 + a, u0:u0 + s]  # from 0: vectorises (see the moments)
+        for t in range(s):
+            pk = max(pk, seg_row[t])
     peak = float(pk)
     ns = 0
     if peak >= full:
@@ -231,11 +234,12 @@ def _window(P, pv, ph, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, 
     for a in range(s):
         dv = float(a - h)
         q0 = q1 = q2 = q3 = q4 = 0.0
-        row = P[pv + a]
         wa = w[a]
-        for du_i in range(-wa, wa + 1):
-            du = float(du_i)
-            p = row[ph + h + du_i] - b0
+        # a slice indexed from 0: the compiler then knows the indices are not negative and vectorises
+        seg_row = P[pv + a, ph + h - wa:ph + h + wa + 1]
+        for t in range(2 * wa + 1):
+            du = float(t - wa)
+            p = seg_row[t] - b0
             pu = p * du
             pu2 = pu * du
             q0 += p
@@ -322,13 +326,14 @@ def _window(P, pv, ph, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, 
         for a in range(s):
             dv = float(a - h)
             row0, row1 = k0 + k2 * dv + k5 * dv * dv, k1 + k4 * dv
-            lo, hi, row = h - w[a], h + w[a], P[pv + a]
+            lo, hi = h - w[a], h + w[a]
+            seg_row = P[pv + a, ph + lo:ph + hi + 1]
             for b in range(lo):  # outside the circle the pixels count as zero
                 du = float(b - h)
                 mis += min(max(row0 + du * (row1 + k3 * du), 0.0), level)
-            for b in range(lo, hi + 1):
-                du = float(b - h)
-                mis += abs(min(max(row0 + du * (row1 + k3 * du), 0.0), level) - (row[ph + b] - b0))
+            for t in range(hi + 1 - lo):
+                du = float(t + lo - h)
+                mis += abs(min(max(row0 + du * (row1 + k3 * du), 0.0), level) - (seg_row[t] - b0))
             for b in range(hi + 1, s):
                 du = float(b - h)
                 mis += min(max(row0 + du * (row1 + k3 * du), 0.0), level)
@@ -431,48 +436,9 @@ def warm_up() -> None:
                                               np.array([-1, 0], dtype=np.intp))
     assess_kernel(out, n_sat, edge, placed, 20.0, np.array([6, 5000, 4, 0.6, 2, 2.5, 0.4, 3, 4, 0.015, 0.05]),
                   np.arange(5, dtype=np.intp))
-    pts = np.array([[0, 0], [2, 0], [2, 2], [0, 2]], dtype=np.int32)
-    contour_sums_kernel(pts, np.array([0], dtype=np.intp), np.array([4], dtype=np.intp))
-
-
-@njit(cache=True, error_model="numpy")
-def contour_sums_kernel(pts, starts, lengths):
-    """Per closed polygon (C) of the vertices ``pts`` (M, 2) int, px, from ``starts`` with
-    ``lengths``: its box (C, 4) u0 v0 u1 v1 inclusive, the Green's-theorem sums (7, C) relative to
-    its first vertex (2A, boundary steps, 6A c_u, 6A c_v, 12A m_uu, 12A m_vv, 24A m_uv; see
-    ``detect._contours``) and its reach (C,): the farthest vertex from the box centre, rounded up."""
-    nc = starts.size
-    box = np.empty((nc, 4), dtype=np.intp)
-    sums = np.zeros((7, nc))
-    reach = np.empty(nc, dtype=np.intp)
-    for c in range(nc):
-        s0, L = starts[c], lengths[c]
-        fx, fy = pts[s0, 0], pts[s0, 1]
-        u0, v0, u1, v1 = fx, fy, fx, fy
-        t0 = t1 = t2 = t3 = t4 = t5 = t6 = 0.0
-        for k in range(L):
-            j = s0 + k
-            jn = s0 + (k + 1) % L
-            u0, u1 = min(u0, pts[j, 0]), max(u1, pts[j, 0])
-            v0, v1 = min(v0, pts[j, 1]), max(v1, pts[j, 1])
-            x, y = float(pts[j, 0] - fx), float(pts[j, 1] - fy)
-            x1, y1 = float(pts[jn, 0] - fx), float(pts[jn, 1] - fy)
-            cross = x * y1 - x1 * y
-            sx, sy = x + x1, y + y1
-            t0 += cross
-            t1 += max(abs(x1 - x), abs(y1 - y))
-            t2 += sx * cross
-            t3 += sy * cross
-            t4 += (x * x + x * x1 + x1 * x1) * cross
-            t5 += (y * y + y * y1 + y1 * y1) * cross
-            t6 += (sx * sy + x * y + x1 * y1) * cross
-        box[c, 0], box[c, 1], box[c, 2], box[c, 3] = u0, v0, u1, v1
-        sums[0, c], sums[1, c], sums[2, c], sums[3, c] = t0, t1, t2, t3
-        sums[4, c], sums[5, c], sums[6, c] = t4, t5, t6
-        cu, cv = (u0 + u1) // 2, (v0 + v1) // 2
-        far = 0.0
-        for k in range(L):
-            du, dv = float(pts[s0 + k, 0] - cu), float(pts[s0 + k, 1] - cv)
-            far = max(far, du * du + dv * dv)
-        reach[c] = int(np.ceil(np.sqrt(far)))
-    return box, sums, reach
+    contour_kernel.warm_up()
+    centre, flags = np.array([[1.0, 1.0], [9.0, 1.0]]), np.ones(2, dtype=np.bool_)
+    crowd_kernel.neighbours_kernel(centre, np.ones((2, 3)), np.ones((2, 2), dtype=np.intp),
+                                   np.ones(2, dtype=np.intp), flags, flags, 20.0, 2.0, 3.2)
+    own = np.array([[0.0, 0.0, 0.1, 0.0, 0.1], [np.nan] * 5])
+    crowd_kernel.mask_windows_kernel(img, c, c, half, np.array([0], dtype=np.intp), own, 10.0)

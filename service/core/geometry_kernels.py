@@ -3,10 +3,13 @@
 Written as loops because each call handles a few hundred points many times
 per frame: the collinearity residuals and their Jacobian (the adjustment's
 inner loop), the data-snooping statistics, the disk centres' perspective
-offsets, and the inverse of the Brown/Fraser correction. As numpy
-expressions they cost tens of array passes per call, more than their
-arithmetic. The formulas are those of :mod:`service.core.resection`,
-:mod:`service.core.identify` and :mod:`service.core.camera_model`.
+offsets, the inverse of the Brown/Fraser correction, the projection of the
+field and the matching of predictions to blobs, the pose prediction, and the
+resection's input checks and whitening. As numpy expressions they cost tens of
+array passes per call, more than their arithmetic. The formulas are those of
+:mod:`service.core.resection`, :mod:`service.core.resection_closed_form`,
+:mod:`service.core.identify`, :mod:`service.core.tracking` and
+:mod:`service.core.camera_model`, in the same order of operations.
 """
 
 from __future__ import annotations
@@ -111,6 +114,31 @@ def point_statistics_kernel(v, A, Qxx, sign):
     return T2, det
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _sensor_from_ideal_point(tx, ty, K1, K2, K3, P1, P2, B1, B2, max_iter):
+    """Newton inverse of the Brown/Fraser correction at one ideal point (mm, relative to the
+    principal point): the measured point, until the step is below 1e-12 mm."""
+    xb, yb = tx, ty
+    for _ in range(max_iter):
+        r2 = xb * xb + yb * yb
+        radial = r2 * (K1 + r2 * (K2 + r2 * K3))
+        dx = xb * radial + P1 * (r2 + 2 * xb * xb) + 2 * P2 * xb * yb + B1 * xb + B2 * yb
+        dy = yb * radial + 2 * P1 * xb * yb + P2 * (r2 + 2 * yb * yb)
+        rx, ry = xb + dx - tx, yb + dy - ty
+        g = K1 + r2 * (2 * K2 + 3 * K3 * r2)
+        j00 = 1 + radial + 2 * xb * xb * g + 6 * P1 * xb + 2 * P2 * yb + B1
+        j01 = 2 * xb * yb * g + 2 * P1 * yb + 2 * P2 * xb + B2
+        j10 = 2 * xb * yb * g + 2 * P1 * yb + 2 * P2 * xb
+        j11 = 1 + radial + 2 * yb * yb * g + 2 * P1 * xb + 6 * P2 * yb
+        det = j00 * j11 - j01 * j10
+        sx, sy = (j11 * rx - j01 * ry) / det, (-j10 * rx + j00 * ry) / det
+        xb -= sx
+        yb -= sy
+        if abs(sx) < 1e-12 and abs(sy) < 1e-12:
+            break
+    return xb, yb
+
+
 @njit(cache=True, error_model="numpy")
 def sensor_from_ideal_kernel(target, K1, K2, K3, P1, P2, B1, B2, max_iter):
     """Newton inverse of the Brown/Fraser correction per point, relative to the principal point:
@@ -118,44 +146,128 @@ def sensor_from_ideal_kernel(target, K1, K2, K3, P1, P2, B1, B2, max_iter):
     n = target.shape[0]
     out = np.empty((n, 2))
     for i in range(n):
-        tx, ty = target[i, 0], target[i, 1]
-        xb, yb = tx, ty
-        for _ in range(max_iter):
-            r2 = xb * xb + yb * yb
-            radial = r2 * (K1 + r2 * (K2 + r2 * K3))
-            dx = xb * radial + P1 * (r2 + 2 * xb * xb) + 2 * P2 * xb * yb + B1 * xb + B2 * yb
-            dy = yb * radial + 2 * P1 * xb * yb + P2 * (r2 + 2 * yb * yb)
-            rx, ry = xb + dx - tx, yb + dy - ty
-            g = K1 + r2 * (2 * K2 + 3 * K3 * r2)
-            j00 = 1 + radial + 2 * xb * xb * g + 6 * P1 * xb + 2 * P2 * yb + B1
-            j01 = 2 * xb * yb * g + 2 * P1 * yb + 2 * P2 * xb + B2
-            j10 = 2 * xb * yb * g + 2 * P1 * yb + 2 * P2 * xb
-            j11 = 1 + radial + 2 * yb * yb * g + 2 * P1 * xb + 6 * P2 * yb
-            det = j00 * j11 - j01 * j10
-            sx, sy = (j11 * rx - j01 * ry) / det, (-j10 * rx + j00 * ry) / det
-            xb -= sx
-            yb -= sy
-            if abs(sx) < 1e-12 and abs(sy) < 1e-12:
-                break
-        out[i, 0], out[i, 1] = xb, yb
+        out[i, 0], out[i, 1] = _sensor_from_ideal_point(target[i, 0], target[i, 1], K1, K2, K3, P1, P2, B1, B2,
+                                                        max_iter)
     return out
 
 
 @njit(cache=True, error_model="numpy")
-def eccentricity_kernel(ex, ey, pc, R, c, radius):
-    """Offset (n, 2) mm, ideal coordinates, of each disk image's centre from the image of the
-    disk's centre: the centre of the conic ``H^-T diag(1, 1, -r^2) H^-1`` with ``H`` the homography
-    from the disk's plane (axes ``ex``, ``ey`` (n, 3), centre ``pc`` (n, 3) camera frame) to the
-    image. ``R`` is ``R_camera_field``."""
-    n = pc.shape[0]
+def whitened_ideal_kernel(uv, cu, cv, pixel_u, pixel_v, x0, y0, K1, K2, K3, P1, P2, B1, B2):
+    """Ideal coordinates (n, 2) mm of pixels ``uv`` (n, 2) and the inverses (n, 2, 2) px/mm of
+    d(ideal)/d(pixel) there, in one pass: ``BrownFraser.ideal_from_pixel`` and the inverse of
+    ``BrownFraser.ideal_from_pixel_jacobian`` (the resection's inputs), the same arithmetic."""
+    n = uv.shape[0]
+    xy = np.empty((n, 2))
+    W = np.empty((n, 2, 2))
+    for i in range(n):
+        x, y = (uv[i, 0] - cu) * pixel_u - x0, (uv[i, 1] - cv) * pixel_v - y0
+        r2 = x * x + y * y
+        radial = r2 * (K1 + r2 * (K2 + r2 * K3))
+        xy[i, 0] = x + (x * radial + P1 * (r2 + 2 * x * x) + 2 * P2 * x * y + B1 * x + B2 * y)
+        xy[i, 1] = y + (y * radial + 2 * P1 * x * y + P2 * (r2 + 2 * y * y))
+        g = K1 + r2 * (2 * K2 + 3 * K3 * r2)
+        j00 = (1 + radial + 2 * x * x * g + 6 * P1 * x + 2 * P2 * y + B1) * pixel_u
+        j01 = (2 * x * y * g + 2 * P1 * y + 2 * P2 * x + B2) * pixel_v
+        j10 = (2 * x * y * g + 2 * P1 * y + 2 * P2 * x) * pixel_u
+        j11 = (1 + radial + 2 * y * y * g + 2 * P1 * x + 6 * P2 * y) * pixel_v
+        det = j00 * j11 - j01 * j10
+        W[i, 0, 0], W[i, 0, 1], W[i, 1, 0], W[i, 1, 1] = j11 / det, -j01 / det, -j10 / det, j00 / det
+    return xy, W
+
+
+@njit(cache=True, error_model="numpy")
+def scatter_kernel(p, xy):
+    """Scatter matrices about the centroids: (3, 3) of field points ``p`` (n, 3) and (2, 2) of
+    image points ``xy`` (n, 2) (``resection_closed_form.check_geometry``'s input)."""
+    n = p.shape[0]
+    mp, mx = np.zeros(3), np.zeros(2)
+    for i in range(n):
+        for k in range(3):
+            mp[k] += p[i, k]
+        mx[0] += xy[i, 0]
+        mx[1] += xy[i, 1]
+    mp /= n
+    mx /= n
+    S, Sx = np.zeros((3, 3)), np.zeros((2, 2))
+    for i in range(n):
+        d0, d1, d2 = p[i, 0] - mp[0], p[i, 1] - mp[1], p[i, 2] - mp[2]
+        S[0, 0] += d0 * d0
+        S[0, 1] += d0 * d1
+        S[0, 2] += d0 * d2
+        S[1, 1] += d1 * d1
+        S[1, 2] += d1 * d2
+        S[2, 2] += d2 * d2
+        e0, e1 = xy[i, 0] - mx[0], xy[i, 1] - mx[1]
+        Sx[0, 0] += e0 * e0
+        Sx[0, 1] += e0 * e1
+        Sx[1, 1] += e1 * e1
+    S[1, 0], S[2, 0], S[2, 1], Sx[1, 0] = S[0, 1], S[0, 2], S[1, 2], Sx[0, 1]
+    return S, Sx
+
+
+@njit(cache=True, error_model="numpy")
+def is_rigid_kernel(T, tol):
+    """Whether ``T`` (4, 4) is finite, its rotation orthonormal and proper, and its last row
+    (0, 0, 0, 1), each within ``tol``."""
+    for i in range(4):
+        for j in range(4):
+            if not np.isfinite(T[i, j]):
+                return False
+    for i in range(3):
+        for j in range(3):
+            d = T[0, i] * T[0, j] + T[1, i] * T[1, j] + T[2, i] * T[2, j] - (1.0 if i == j else 0.0)
+            if abs(d) > tol:
+                return False
+    det = (T[0, 0] * (T[1, 1] * T[2, 2] - T[1, 2] * T[2, 1]) - T[0, 1] * (T[1, 0] * T[2, 2] - T[1, 2] * T[2, 0])
+           + T[0, 2] * (T[1, 0] * T[2, 1] - T[1, 1] * T[2, 0]))
+    return det > 0 and abs(T[3, 0]) <= tol and abs(T[3, 1]) <= tol and abs(T[3, 2]) <= tol and abs(T[3, 3] - 1) <= tol
+
+
+@njit(cache=True, error_model="numpy")
+def project_kernel(R, t, xyz, c, K1, K2, K3, P1, P2, B1, B2, x0, y0, pixel_u, pixel_v, width, height, margin):
+    """Pixels (n, 2) px of field points ``xyz`` (n, 3) mm seen from ``T_field_camera`` = (R, t), as
+    ``BrownFraser.pixel_from_camera`` computes them; their depth Z (n,) mm; and which are in front
+    and inside the image by ``margin`` px (``BrownFraser.in_image``). Points behind give NaN."""
+    n = xyz.shape[0]
+    uv = np.full((n, 2), np.nan)
+    depth = np.empty(n)
+    inside = np.zeros(n, dtype=np.bool_)
+    cu, cv = (width - 1) / 2.0, (height - 1) / 2.0
+    for i in range(n):
+        d0, d1, d2 = xyz[i, 0] - t[0], xyz[i, 1] - t[1], xyz[i, 2] - t[2]
+        X = d0 * R[0, 0] + d1 * R[1, 0] + d2 * R[2, 0]
+        Y = d0 * R[0, 1] + d1 * R[1, 1] + d2 * R[2, 1]
+        Z = d0 * R[0, 2] + d1 * R[1, 2] + d2 * R[2, 2]
+        depth[i] = Z
+        if not Z > 0:
+            continue
+        xb, yb = _sensor_from_ideal_point(c * X / Z, c * Y / Z, K1, K2, K3, P1, P2, B1, B2, 20)
+        u, v = (xb + x0) / pixel_u + cu, (yb + y0) / pixel_v + cv
+        uv[i, 0], uv[i, 1] = u, v
+        inside[i] = (u >= -0.5 + margin and u <= width - 0.5 - margin
+                     and v >= -0.5 + margin and v <= height - 0.5 - margin)
+    return uv, depth, inside
+
+
+@njit(cache=True, error_model="numpy")
+def eccentricity_kernel(ex, ey, p_field, R, t, c, radius, W):
+    """Offset (n, 2) px of each disk image's centre from the image of the disk's centre.
+
+    In ideal coordinates it is the centre of the conic ``H^-T diag(1, 1, -r^2) H^-1`` with ``H``
+    the homography from the disk's plane (axes ``ex``, ``ey`` (m, 3) field frame, one row for all
+    disks or one per disk; centre ``p_field`` (n, 3) mm) to the image; ``W`` (n, 2, 2), the inverse
+    of the ideal-from-pixel Jacobian at each disk, takes it to pixels. ``R``, ``t``: ``T_camera_field``.
+    """
+    n = p_field.shape[0]
     out = np.empty((n, 2))
     H = np.empty((3, 3))
     Hi = np.empty((3, 3))
     for i in range(n):
+        a = min(i, ex.shape[0] - 1)
         for k in range(3):
-            H[k, 0] = R[k, 0] * ex[i, 0] + R[k, 1] * ex[i, 1] + R[k, 2] * ex[i, 2]
-            H[k, 1] = R[k, 0] * ey[i, 0] + R[k, 1] * ey[i, 1] + R[k, 2] * ey[i, 2]
-            H[k, 2] = pc[i, k]
+            H[k, 0] = R[k, 0] * ex[a, 0] + R[k, 1] * ex[a, 1] + R[k, 2] * ex[a, 2]
+            H[k, 1] = R[k, 0] * ey[a, 0] + R[k, 1] * ey[a, 1] + R[k, 2] * ey[a, 2]
+            H[k, 2] = R[k, 0] * p_field[i, 0] + R[k, 1] * p_field[i, 1] + R[k, 2] * p_field[i, 2] + t[k]
         for j in range(3):
             H[0, j] *= c
             H[1, j] *= c
@@ -178,8 +290,9 @@ def eccentricity_kernel(ex, ey, pc, R, c, radius):
         c12 = Hi[0, 1] * Hi[0, 2] + Hi[1, 1] * Hi[1, 2] - r2 * Hi[2, 1] * Hi[2, 2]
         det = c00 * c11 - c01 * c01
         cx, cy = -(c11 * c02 - c01 * c12) / det, -(-c01 * c02 + c00 * c12) / det
-        out[i, 0] = cx - H[0, 2] / H[2, 2]
-        out[i, 1] = cy - H[1, 2] / H[2, 2]
+        ox, oy = cx - H[0, 2] / H[2, 2], cy - H[1, 2] / H[2, 2]
+        out[i, 0] = W[i, 0, 0] * ox + W[i, 0, 1] * oy  # to pixels
+        out[i, 1] = W[i, 1, 0] * ox + W[i, 1, 1] * oy
     return out
 
 
@@ -224,6 +337,46 @@ def rotation_from_rotvec_kernel(w):
     if theta < 1e-8:
         return np.eye(3) + K + 0.5 * K2
     return np.eye(3) + (np.sin(theta) / theta) * K + ((1 - np.cos(theta)) / theta**2) * K2
+
+
+@njit(cache=True, error_model="numpy")
+def rotvec_from_matrix_kernel(R):
+    """Rotation vector (3,) rad of a rotation matrix, through its unit quaternion (Shepperd's
+    method, stable at any angle)."""
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    q = np.empty(4)  # x, y, z, w
+    k, big = 0, tr
+    for d in range(3):
+        if R[d, d] > big:
+            k, big = d + 1, R[d, d]
+    if k == 0:
+        w = 0.5 * np.sqrt(1.0 + tr)
+        f = 0.25 / w
+        q[0], q[1], q[2], q[3] = (R[2, 1] - R[1, 2]) * f, (R[0, 2] - R[2, 0]) * f, (R[1, 0] - R[0, 1]) * f, w
+    else:
+        i, j, m = k - 1, k % 3, (k + 1) % 3
+        q[i] = 0.5 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[m, m])
+        f = 0.25 / q[i]
+        q[j], q[m], q[3] = (R[j, i] + R[i, j]) * f, (R[m, i] + R[i, m]) * f, (R[m, j] - R[j, m]) * f
+    if q[3] < 0:
+        q *= -1.0
+    n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2])
+    if n < 1e-12:
+        return 2.0 * q[:3]
+    return (2.0 * np.arctan2(n, q[3]) / n) * q[:3]
+
+
+@njit(cache=True, error_model="numpy")
+def predict_kernel(T0, T1, s):
+    """``T1`` moved on by ``s`` times the motion from ``T0`` to ``T1`` (4, 4): linear in position,
+    along the geodesic in rotation (``tracking.predict_pose``)."""
+    R0, R1 = np.ascontiguousarray(T0[:3, :3]), np.ascontiguousarray(T1[:3, :3])
+    R = R1 @ rotation_from_rotvec_kernel(s * rotvec_from_matrix_kernel(R0.T @ R1))
+    T = np.eye(4)
+    T[:3, :3] = R
+    for k in range(3):
+        T[k, 3] = T1[k, 3] + s * (T1[k, 3] - T0[k, 3])
+    return T
 
 
 #: :func:`adjust_kernel`'s outcomes
@@ -305,6 +458,63 @@ def correction_kernel(xb, yb, K1, K2, K3, P1, P2, B1, B2, jacobian):
     return dx, dy, J
 
 
+@njit(cache=True, error_model="numpy")
+def match_kernel(uv_pred, blob_uv, free, tol):
+    """Per prediction (n, 2) px: the one free blob (``blob_uv`` (m, 2), ``free`` (m,)) closer than
+    ``tol`` px, or -1 when there is none or more than one; then -1 also where two predictions
+    got the same blob (``identify.match_predicted``). Through a grid of tol-sized cells."""
+    n, m = uv_pred.shape[0], blob_uv.shape[0]
+    cand = np.full(n, -1, dtype=np.int64)
+    if n == 0 or m == 0 or not tol > 0:
+        return cand
+    x0 = y0 = np.inf
+    x1 = y1 = -np.inf
+    for j in range(m):
+        x0, x1 = min(x0, blob_uv[j, 0]), max(x1, blob_uv[j, 0])
+        y0, y1 = min(y0, blob_uv[j, 1]), max(y1, blob_uv[j, 1])
+    nx, ny = int((x1 - x0) / tol) + 1, int((y1 - y0) / tol) + 1
+    start = np.zeros(nx * ny + 1, dtype=np.int64)
+    cell = np.full(m, -1, dtype=np.int64)
+    for j in range(m):
+        if free[j]:
+            cell[j] = int((blob_uv[j, 1] - y0) / tol) * nx + int((blob_uv[j, 0] - x0) / tol)
+            start[cell[j] + 1] += 1
+    for k in range(nx * ny):
+        start[k + 1] += start[k]
+    order, fill = np.empty(m, dtype=np.int64), start[:-1].copy()
+    for j in range(m):
+        if cell[j] >= 0:
+            order[fill[cell[j]]] = j
+            fill[cell[j]] += 1
+    tol2 = tol * tol
+    for i in range(n):
+        u, v = uv_pred[i, 0], uv_pred[i, 1]
+        if not (np.isfinite(u) and np.isfinite(v)):
+            continue
+        cx, cy = int(np.floor((u - x0) / tol)), int(np.floor((v - y0) / tol))
+        count, best = 0, -1
+        for gy in range(max(cy - 1, 0), min(cy + 2, ny)):
+            for gx in range(max(cx - 1, 0), min(cx + 2, nx)):
+                k = gy * nx + gx
+                for q in range(start[k], start[k + 1]):
+                    j = order[q]
+                    du, dv = blob_uv[j, 0] - u, blob_uv[j, 1] - v
+                    if du * du + dv * dv < tol2:
+                        count += 1
+                        best = j
+        if count == 1:
+            cand[i] = best
+    # a blob wanted by two predictions belongs to neither
+    claims = np.zeros(m, dtype=np.int64)
+    for i in range(n):
+        if cand[i] >= 0:
+            claims[cand[i]] += 1
+    for i in range(n):
+        if cand[i] >= 0 and claims[cand[i]] > 1:
+            cand[i] = -1
+    return cand
+
+
 @lru_cache(maxsize=1)  # once per process
 def warm_up() -> None:
     """Compile (or load from numba's cache) every kernel here for the types the product passes,
@@ -319,7 +529,13 @@ def warm_up() -> None:
     point_statistics_kernel(r, A, np.eye(6), -1.0)
     adjust_kernel(R, t, p, xy, W, 12.0, 1000.0, 2)
     rotation_from_rotvec_kernel(np.zeros(3))
+    predict_kernel(np.eye(4), np.eye(4), 1.0)
+    whitened_ideal_kernel(xy, 1.0, 1.0, 0.0067, 0.0067, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    is_rigid_kernel(np.eye(4), 1e-6)
+    scatter_kernel(p, xy)
     sensor_from_ideal_kernel(xy, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20)
     correction_kernel(xy[:, 0].copy(), xy[:, 1].copy(), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, True)
-    eccentricity_kernel(np.tile([1.0, 0.0, 0.0], (4, 1)), np.tile([0.0, 1.0, 0.0], (4, 1)), pc, R, 12.0,
-                        np.full(4, 3.0))
+    eccentricity_kernel(np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]), p, R, t, 12.0, np.full(4, 3.0),
+                        np.repeat(np.eye(2)[None], 4, axis=0))
+    match_kernel(xy, xy + 1.0, np.ones(4, dtype=np.bool_), 4.0)
+    project_kernel(R, t, p, 12.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0067, 0.0067, 1300, 1030, 0.0)

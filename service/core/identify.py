@@ -18,17 +18,17 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from service.core.camera_model import BrownFraser
 from service.core.field import Field
-from service.core.frames import apply_T, inv_T
-from service.core.geometry_kernels import eccentricity_kernel
+from service.core.geometry_kernels import eccentricity_kernel, match_kernel, project_kernel, whitened_ideal_kernel
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 DEFAULT_NORMAL_FIELD = np.array([0.0, 0.0, 1.0])
+# in-plane axes (1, 3) of the default plane, as eccentricity_px's general rule gives them for the normal +z
+_DEFAULT_AXES = (np.array([[0.0, 1.0, 0.0]]), np.array([[-1.0, 0.0, 0.0]]))
 
 
 @dataclass(frozen=True)
@@ -45,18 +45,16 @@ def match_coded(field: Field, codes_read: NDArray[np.int64]) -> Matches:
     ``codes_read`` (M,) holds the code read for each blob, -1 where none was.
     A code read twice in one image (a reflection, a misread) names neither blob.
     """
-    row_of_code = {int(c): i for i, c in enumerate(field.codes) if c >= 0}
     codes_read = np.asarray(codes_read, dtype=np.int64)
-    valid = codes_read >= 0
-    values, counts = np.unique(codes_read[valid], return_counts=True)
-    once = set(values[counts == 1].tolist())
-    rows, blobs = [], []
-    for b in np.flatnonzero(valid):
-        code = int(codes_read[b])
-        if code in once and code in row_of_code:
-            rows.append(row_of_code[code])
-            blobs.append(int(b))
-    return Matches(np.array(rows, dtype=np.int64), np.array(blobs, dtype=np.int64))
+    field_rows = np.flatnonzero(field.codes >= 0)
+    top = int(max(codes_read.max(initial=0), field.codes.max(initial=0))) + 1
+    row_of_code = np.full(top, -1, dtype=np.int64)
+    row_of_code[field.codes[field_rows]] = field_rows
+    times_read = np.bincount(codes_read[codes_read >= 0], minlength=top)
+    blobs = np.flatnonzero(codes_read >= 0)
+    code = codes_read[blobs]
+    keep = (times_read[code] == 1) & (row_of_code[code] >= 0)
+    return Matches(row_of_code[code[keep]], blobs[keep].astype(np.int64))
 
 
 def match_predicted(
@@ -72,33 +70,31 @@ def match_predicted(
     ``tolerance_px`` and that blob is within tolerance of no other prediction.
     """
     rows = np.asarray(rows, dtype=np.int64)
-    if len(rows) == 0 or len(blob_uv) == 0:
-        return Matches(np.empty(0, np.int64), np.empty(0, np.int64))
-    free = np.ones(len(blob_uv), bool) if taken is None else ~taken
-    free_idx = np.flatnonzero(free)
-    if len(free_idx) == 0:
-        return Matches(np.empty(0, np.int64), np.empty(0, np.int64))
-    tree = cKDTree(blob_uv[free_idx])
-    d, j = tree.query(uv_predicted, k=2, distance_upper_bound=tolerance_px)
-    single = np.isfinite(d[:, 0]) & ~np.isfinite(d[:, 1])
-    cand = free_idx[np.minimum(j[single, 0], len(free_idx) - 1)]
-    # a blob wanted by two predictions belongs to neither
-    vals, counts = np.unique(cand, return_counts=True)
-    unique_blob = np.isin(cand, vals[counts == 1])
-    return Matches(rows[single][unique_blob], cand[unique_blob])
+    free = np.ones(len(blob_uv), bool) if taken is None else ~np.asarray(taken, dtype=bool)
+    cand = match_kernel(np.require(uv_predicted, np.float64, ["C", "W"]).reshape(-1, 2),
+                        np.require(blob_uv, np.float64, ["C", "W"]).reshape(-1, 2), free, float(tolerance_px))
+    ok = cand >= 0
+    return Matches(rows[ok], cand[ok])
 
 
 def project_field(
-    camera: BrownFraser, field: Field, T_field_camera: Array, margin_px: float = 0.0
-) -> tuple[IntArray, Array]:
-    """Rows and pixel positions (N, 2) of field targets in front of the camera and inside the image."""
-    p_camera = apply_T(inv_T(T_field_camera), field.xyz)
-    front = p_camera[:, 2] > 0
-    uv = np.full((len(field), 2), np.nan)
-    uv[front] = camera.pixel_from_camera(p_camera[front])
-    inside = front & camera.in_image(uv, margin_px)
+    camera: BrownFraser, field: Field, T_field_camera: Array, margin_px: float = 0.0, *, with_depth: bool = False
+) -> tuple[IntArray, Array] | tuple[IntArray, Array, Array]:
+    """Rows and pixel positions (N, 2) of field targets in front of the camera and inside the image.
+
+    With ``with_depth`` also their depth (N,) mm along the optical axis. One compiled pass (the
+    prediction of every target runs once or twice per ROI frame).
+    """
+    T = np.asarray(T_field_camera, dtype=np.float64)
+    uv, depth, inside = project_kernel(
+        np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), field.xyz, float(camera.c_mm),
+        float(camera.K1), float(camera.K2), float(camera.K3), float(camera.P1), float(camera.P2), float(camera.B1),
+        float(camera.B2), float(camera.x0_mm), float(camera.y0_mm), float(camera.pixel_size_mm[0]),
+        float(camera.pixel_size_mm[1]), int(camera.width), int(camera.height), float(margin_px))
     rows = np.flatnonzero(inside)
-    return rows.astype(np.int64), uv[rows]
+    if with_depth:
+        return rows, uv[rows], depth[rows]
+    return rows, uv[rows]
 
 
 def eccentricity_px(
@@ -121,27 +117,27 @@ def eccentricity_px(
     Subtract the result from measured centroids to get the image of the centre.
     """
     n = len(p_field)
-    if normals_field is None:  # one plane for all: its axes once
-        normal = DEFAULT_NORMAL_FIELD[None, :]
+    if normals_field is None:  # one plane for all
+        ex, ey = _DEFAULT_AXES
     else:
         normal = np.broadcast_to(normals_field, (n, 3))
-    # any in-plane axes will do: the conic of a circle does not depend on them
-    nx, ny, nz = normal[:, 0], normal[:, 1], normal[:, 2]
-    zero = np.zeros_like(nx)
-    # normal x (1, 0, 0) or, for a normal near x, normal x (0, 1, 0); by hand: np.cross costs more here
-    ex = np.where((np.abs(nx) < 0.9)[:, None], np.stack([zero, nz, -ny], 1), np.stack([-nz, zero, nx], 1))
-    ex /= np.linalg.norm(ex, axis=1, keepdims=True)
-    ey = np.stack([ny * ex[:, 2] - nz * ex[:, 1], nz * ex[:, 0] - nx * ex[:, 2], nx * ex[:, 1] - ny * ex[:, 0]], 1)
-    # writable C arrays: one compiled kernel for every way the inputs come
-    ex, ey = (np.require(np.broadcast_to(a, (n, 3)), np.float64, ['C', 'W']) for a in (ex, ey))
-    T_camera_field = inv_T(T_field_camera)
-    R = np.ascontiguousarray(T_camera_field[:3, :3])
-    p_camera = np.ascontiguousarray(apply_T(T_camera_field, np.asarray(p_field, dtype=np.float64)))
+        # any in-plane axes will do: the conic of a circle does not depend on them
+        nx, ny, nz = normal[:, 0], normal[:, 1], normal[:, 2]
+        zero = np.zeros_like(nx)
+        # normal x (1, 0, 0) or, for a normal near x, normal x (0, 1, 0); by hand: np.cross costs more here
+        ex = np.where((np.abs(nx) < 0.9)[:, None], np.stack([zero, nz, -ny], 1), np.stack([-nz, zero, nx], 1))
+        ex /= np.linalg.norm(ex, axis=1, keepdims=True)
+        ey = np.stack([ny * ex[:, 2] - nz * ex[:, 1], nz * ex[:, 0] - nx * ex[:, 2], nx * ex[:, 1] - ny * ex[:, 0]], 1)
+        # writable C arrays: one compiled kernel for every way the inputs come
+        ex, ey = (np.require(a, np.float64, ['C', 'W']) for a in (ex, ey))
+    T = np.asarray(T_field_camera, dtype=np.float64)
+    R_camera_field = np.ascontiguousarray(T[:3, :3].T)
+    t_camera_field = -R_camera_field @ T[:3, 3]
     radius = np.require(np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (n,)), np.float64, ['C', 'W'])
-    offset_mm = eccentricity_kernel(ex, ey, p_camera, R, float(camera.c_mm), radius)
-    J = camera.ideal_from_pixel_jacobian(uv)
-    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-    out = np.empty((n, 2))
-    out[:, 0] = (J[:, 1, 1] * offset_mm[:, 0] - J[:, 0, 1] * offset_mm[:, 1]) / det
-    out[:, 1] = (J[:, 0, 0] * offset_mm[:, 1] - J[:, 1, 0] * offset_mm[:, 0]) / det
-    return out
+    # the pixels' whitening (inverse ideal-from-pixel Jacobian) in one compiled pass, as the resection gets it
+    _, W = whitened_ideal_kernel(
+        np.require(uv, np.float64, ['C', 'W']), (camera.width - 1) / 2.0, (camera.height - 1) / 2.0,
+        *map(float, camera.pixel_size_mm), float(camera.x0_mm), float(camera.y0_mm),
+        *map(float, (camera.K1, camera.K2, camera.K3, camera.P1, camera.P2, camera.B1, camera.B2)))
+    return eccentricity_kernel(ex, ey, np.require(p_field, np.float64, ['C', 'W']), R_camera_field, t_camera_field,
+                               float(camera.c_mm), radius, W)

@@ -36,9 +36,11 @@ from service.core.geometry_kernels import (
     SINGULAR,
     adjust_kernel,
     design_kernel,
+    is_rigid_kernel,
     normal_kernel,
     point_statistics_kernel,
     residuals_kernel,
+    whitened_ideal_kernel,
 )
 from service.core.resection_closed_form import (
     check_geometry,
@@ -115,29 +117,12 @@ def _check_pose(T_field_camera: ArrayLike) -> Array:
     """The start pose as a (4, 4) array; ``frames.check_T`` (a tenth of a resection's time)
     only judges a pose that fails this cheaper test."""
     T = np.array(T_field_camera, dtype=np.float64)
-    if (
-        T.shape != (4, 4)
-        or not np.all(np.isfinite(T))
-        or np.max(np.abs(T[:3, :3].T @ T[:3, :3] - np.eye(3))) > 1e-6
-        or np.linalg.det(T[:3, :3]) <= 0
-        or np.max(np.abs(T[3] - [0.0, 0.0, 0.0, 1.0])) > 1e-6
-    ):
+    if T.shape != (4, 4) or not is_rigid_kernel(T, 1e-6):  # compiled: numpy calls cost 0.03 ms per frame
         T = check_T(T, "T_field_camera_init")
     return T
 
 
 # -- closed form ----------------------------------------------------------------
-
-
-def _inverse_2x2(J: Array) -> Array:
-    """Inverses of (n, 2, 2) matrices in closed form (numpy's batched inv is slower for 2x2)."""
-    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-    W = np.empty_like(J)
-    W[:, 0, 0] = J[:, 1, 1] / det
-    W[:, 0, 1] = -J[:, 0, 1] / det
-    W[:, 1, 0] = -J[:, 1, 0] / det
-    W[:, 1, 1] = J[:, 0, 0] / det
-    return W
 
 
 def _residuals(R: Array, t: Array, p: Array, xy: Array, W: Array, c: float) -> tuple[Array, Array]:
@@ -283,16 +268,21 @@ def resect(
     p, q = check_observations(p_field, uv)
     p, q = (np.require(a, np.float64, ['C', 'W']) for a in (p, q))  # the one array type the kernels know
     n, c = len(p), float(camera.c_mm)
-    xy = camera.ideal_from_pixel(q)
+    # camera.ideal_from_pixel and the inverse of camera.ideal_from_pixel_jacobian in one compiled pass:
+    # as two array pipelines they cost a sixth of an ROI frame's resection
+    xy, W = whitened_ideal_kernel(
+        q, (camera.width - 1) / 2.0, (camera.height - 1) / 2.0, *map(float, camera.pixel_size_mm), float(camera.x0_mm),
+        float(camera.y0_mm), *map(float, (camera.K1, camera.K2, camera.K3, camera.P1, camera.P2, camera.B1, camera.B2)))
     spread = check_geometry(p, xy)
     if T_field_camera_init is None:
         T = closed_form_ideal(p, xy, c, spread)
     else:
         T = _check_pose(T_field_camera_init)
-    W = _inverse_2x2(camera.ideal_from_pixel_jacobian(q))  # px/mm, whitens ideal residuals
-    scale_mm = max(float(np.sqrt(np.mean(np.sum((p - T[:3, 3]) ** 2, axis=1)))), 1e-9)
-    r0, _ = _residuals(T[:3, :3], T[:3, 3], p, xy, W, c)
-    initial_cost = float(np.nan_to_num(0.5 * np.sum(r0 * r0), nan=np.inf))
+    # W (px/mm) whitens ideal residuals
+    d_mm = p - T[:3, 3]
+    scale_mm = max(float(np.sqrt(np.einsum("ij,ij->", d_mm, d_mm) / n)), 1e-9)
+    ss0 = residuals_kernel(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), p, xy, W, c)[2]
+    initial_cost = 0.5 * ss0 if ss0 == ss0 else np.inf
     test = (sigma_px, max_sigma_px, critical_value)
 
     inliers = np.ones(n, dtype=bool)
@@ -300,7 +290,10 @@ def resect(
     n_iter, readmitted = 0, False
     while True:
         idx = np.flatnonzero(inliers)
-        T, it, v, pc, A, converged = _adjust(T, p[idx], xy[idx], W[idx], c, scale_mm, max_iter)
+        if len(idx) == n:  # no copies while every point is in (the usual case)
+            T, it, v, pc, A, converged = _adjust(T, p, xy, W, c, scale_mm, max_iter)
+        else:
+            T, it, v, pc, A, converged = _adjust(T, p[idx], xy[idx], W[idx], c, scale_mm, max_iter)
         n_iter += it
         N = normal_kernel(A, v)[0]
         d = np.sqrt(np.diag(N))

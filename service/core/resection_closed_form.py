@@ -20,6 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from service.core.camera_model import BrownFraser
 from service.core.frames import make_T
+from service.core.geometry_kernels import scatter_kernel
 from service.core.results import Reason, SolveError
 
 Array = NDArray[np.float64]
@@ -52,13 +53,14 @@ def check_observations(p_field: ArrayLike, uv: ArrayLike) -> tuple[Array, Array]
 
 def check_geometry(p: Array, xy: Array) -> Array:
     """Raise on collinear field or image points; return the field points' spread (3,)."""
-    dp = p - p.mean(axis=0)
-    s = np.sqrt(np.maximum(np.linalg.eigvalsh(dp.T @ dp)[::-1], 0.0))  # spread along principal axes
+    # both scatter matrices in one compiled pass: as array expressions they were a sixth of the
+    # resection of an ROI frame
+    S, Sx = scatter_kernel(np.require(p, np.float64, ["C", "W"]), np.require(xy, np.float64, ["C", "W"]))
+    s = np.sqrt(np.maximum(np.linalg.eigvalsh(S)[::-1], 0.0))  # spread along principal axes
     if s[0] <= 0 or s[1] < COLLINEAR_RATIO * s[0]:
         msg = "The field points are collinear (or coincide): the rotation about them is unknown."
         raise SolveError(Reason.degenerate_geometry, msg)
-    d = xy - xy.mean(axis=0)
-    sxx, syy, sxy = d[:, 0] @ d[:, 0], d[:, 1] @ d[:, 1], d[:, 0] @ d[:, 1]
+    sxx, syy, sxy = Sx[0, 0], Sx[1, 1], Sx[0, 1]
     # Closed-form eigenvalues of the 2x2 scatter matrix.
     half_tr, root = 0.5 * (sxx + syy), np.hypot(0.5 * (sxx - syy), sxy)
     s_img = np.sqrt(np.maximum([half_tr + root, half_tr - root], 0.0))

@@ -311,3 +311,32 @@ def test_given_background_level_reads_the_same_code(rng):
     readings = read_codes(frame.image, ellipses, background_dn=RenderSettings().background_dn)
     assert [r.code if r else 0 for r in readings] == field.codes[rows].tolist()
     assert all(r.background_dn == RenderSettings().background_dn for r in readings)
+
+
+@pytest.mark.parametrize("dtype, scale", [(np.uint8, 1), (np.uint16, 257), (np.float64, 1 / 255)])
+def test_ring_samples_are_those_of_cv2_remap(dtype, scale, rng):
+    # The compiled reader samples as the former vectorised one did through cv2.remap (positions
+    # rounded to 1/32 px; 8-bit in fixed point): the same readings, at a fraction of the cost.
+    from service.core import decode_kernel
+
+    image = (rng.integers(0, 256, (40, 60)) * scale).astype(dtype)
+    e = np.array([29.3, 19.7, 6.1, 4.2, 0.7])
+    pts = rng.uniform(-5.5, 5.5, (4000, 2))  # some fall outside the image
+    ca, sa = np.cos(e[4]), np.sin(e[4])
+    m = (ca * e[2], -sa * e[3], sa * e[2], ca * e[3])
+    mode = {np.uint8: decode_kernel.FIXED8, np.uint16: decode_kernel.ROUNDED}.get(dtype, decode_kernel.FLOAT)
+    got = np.empty(len(pts))
+    decode_kernel._sample(image, mode, e, *m, pts, got)
+    u = (e[0] + m[0] * pts[:, 0] + m[1] * pts[:, 1]).astype(np.float32)[None]
+    v = (e[1] + m[2] * pts[:, 0] + m[3] * pts[:, 1]).astype(np.float32)[None]
+    ref = cv2.remap(image.astype(np.float32) if dtype == np.float64 else image, u, v, cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)[0].astype(np.float64)
+    inside = (u[0] >= 0) & (u[0] <= 59) & (v[0] >= 0) & (v[0] <= 39)
+    assert 0.6 < inside.mean() < 0.95
+    assert np.all(np.isnan(got[~inside]))
+    if dtype == np.uint8:
+        assert np.array_equal(got[inside], ref[inside])
+    elif dtype == np.uint16:  # rounded in floating point: now and then 1 DN apart
+        assert np.abs(got[inside] - ref[inside]).max() <= 1 and np.mean(got[inside] != ref[inside]) < 0.01
+    else:
+        assert np.allclose(got[inside], ref[inside], rtol=1e-5, atol=1e-6)

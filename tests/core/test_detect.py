@@ -274,3 +274,14 @@ def test_an_empty_frame_gives_no_blobs():
     frame = render(RenderSettings(lit=False))
     blobs, rejected = detect_blobs(frame.image)
     assert len(blobs) == 0 and len(rejected) == 0
+
+
+def test_a_reused_mask_buffer_gives_the_same_blobs(reference):
+    frame, blobs, rejections = reference
+    buffer = np.full(frame.image.shape, 7, dtype=np.uint8)  # stale content must not matter
+    for _ in range(2):
+        again, again_rej = detect_blobs(frame.image, mask_buffer=buffer)
+        assert np.array_equal(again.uv, blobs.uv) and np.array_equal(again.has_ring, blobs.has_ring)
+        assert again_rej.counts == rejections.counts
+    wrong = np.zeros((10, 10), dtype=np.uint8)  # another shape: ignored
+    assert np.array_equal(detect_blobs(frame.image, mask_buffer=wrong)[0].uv, blobs.uv)
