@@ -78,6 +78,40 @@ def cmd_calibrate_handeye(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_calibrate_camera(args: argparse.Namespace) -> int:
+    from service.calibrate_camera import camera_options, run_camera_calibration, summary
+
+    try:
+        result = run_camera_calibration(args.field, **camera_options(args))
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    except SolveError as e:
+        _print_json(Failure.from_error(e).to_dict())
+        print(f"posecell calibrate camera: {e.message}", file=sys.stderr)
+        return EXIT_FAILED
+    _print_json(summary(result, args.output))
+    for w in result.warnings:
+        print(f"posecell calibrate camera: warning: {w}", file=sys.stderr)
+    return 0
+
+
+def cmd_calibrate_rig(args: argparse.Namespace) -> int:
+    from service.calibrate_camera import rig_options, rig_summary, run_rig_calibration
+
+    try:
+        result = run_rig_calibration(args.field, args.camera, **rig_options(args))
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    except SolveError as e:
+        _print_json(Failure.from_error(e).to_dict())
+        print(f"posecell calibrate rig: {e.message}", file=sys.stderr)
+        return EXIT_FAILED
+    _print_json(rig_summary(result, args.output))
+    for w in result.warnings:
+        print(f"posecell calibrate rig: warning: {w}", file=sys.stderr)
+    return 0
+
+
 def cmd_measure(args: argparse.Namespace) -> int:
     from service.core.codes import FAMILIES
     from service.core.detect import DetectSettings
@@ -223,6 +257,69 @@ def build_parser() -> argparse.ArgumentParser:
     )
     he.add_argument("-o", "--output", help="also write the result to this JSON file")
     he.set_defaults(func=cmd_calibrate_handeye)
+
+    def calibration_options(q: argparse.ArgumentParser) -> None:
+        q.add_argument("--sigma-px", type=float, default=0.1,
+                       help="a-priori precision of an image coordinate, px: weighs images against scale bars "
+                       "and weighted control (default 0.1); sigma0 is reported in px regardless")
+        q.add_argument("--scale-bar", action="append", metavar="A,B,MM[,SIGMA_MM]",
+                       help="a known distance between targets A and B (repeatable; sigma default 0.01 mm)")
+        q.add_argument("--no-reject", action="store_true", help="keep every observation (no gross-error rejection)")
+        q.add_argument("--code-family", choices=["posecell12", "aicon14"], default="posecell12",
+                       help="ring code of the coded targets in the images (as for measure)")
+        q.add_argument("--min-contrast-dn", type=float, default=None, help="as for measure")
+        q.add_argument("--min-area-px", type=int, default=None, help="as for measure")
+        q.add_argument("--max-area-px", type=int, default=None, help="as for measure")
+        q.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
+
+    cc = cal.add_parser(
+        "camera",
+        help="self-calibrating bundle adjustment: camera.json (and the surveyed field)",
+        description="Estimates the camera's Brown/Fraser interior orientation (c, x0, y0, K1-K3, P1, P2, B1, B2), "
+        "every image's pose and the targets' coordinates from images of a target field (or from given "
+        "observations), with sigma, correlations and rejected observations. Datum: the nominal field with "
+        "inner constraints (its scale, or scale bars), or control points. Take 8 or more convergent views "
+        "(tilted 20-45 deg) from all sides, half of them rolled by 90 degrees.",
+    )
+    cc.add_argument("--field", required=True, help="field.json, field.csv or an AICON point list .txt (nominal, mm)")
+    cc.add_argument("images", nargs="*", metavar="IMAGE", help="images (or folders of images) of the field")
+    cc.add_argument("--observations", help="OBS.json: {'images': [{'name': .., 'points': [{'id': .., 'uv': [u, v]}]}]}")
+    cc.add_argument("-o", "--output", required=True, help="camera.json to write")
+    cc.add_argument("--field-out", help="also write the surveyed field.json (with sigma_mm per target)")
+    cc.add_argument("--observations-out", help="also write the measured observations (OBS.json)")
+    cc.add_argument("--camera", help="start camera.json (default: --c-mm and --pixel-size-mm)")
+    cc.add_argument("--c-mm", type=float, help="nominal principal distance, mm (without --camera)")
+    cc.add_argument("--pixel-size-mm", type=float, help="pixel size, mm (without --camera)")
+    cc.add_argument("--image-size", help="WIDTHxHEIGHT px (observations without --camera)")
+    cc.add_argument("--fix", help="parameters to keep at the start camera's values, e.g. K3,B1,B2")
+    cc.add_argument("--control", help="ids of control points that fix the datum (default: inner constraints)")
+    cc.add_argument("--control-sigma-mm", type=float, default=0.0,
+                    help="standard deviation of the control points, mm (default 0: fixed)")
+    cc.add_argument("--residuals", choices=["pixel", "ideal"], default="pixel",
+                    help="minimize pixel residuals (default) or ideal-coordinate residuals (DBAT/PhotoModeler form)")
+    cc.add_argument("--passes", type=int, default=2,
+                    help="measure the images again with the calibrated camera and recalibrate (default 2 passes)")
+    calibration_options(cc)
+    cc.set_defaults(func=cmd_calibrate_camera)
+
+    cr = cal.add_parser(
+        "rig",
+        help="relative orientation of rigidly mounted cameras: rig.json",
+        description="Calibrates the poses of cameras 1..K-1 in camera 0's frame (T_master_camera, for forward "
+        "intersection) from simultaneous images of a target field: a bundle adjustment with the rig constraint. "
+        "Images: one folder per camera, matched by file name (or sorted order).",
+    )
+    cr.add_argument("--field", required=True, help="field.json, field.csv or an AICON point list .txt (mm)")
+    cr.add_argument("--camera", nargs="+", required=True, metavar="CAMERA_JSON",
+                    help="camera.json of each camera, master first")
+    cr.add_argument("--images", nargs="+", metavar="DIR", help="one folder of images per camera, same order")
+    cr.add_argument("--observations", help="OBS.json whose images carry 'camera' (index) and 'epoch'")
+    cr.add_argument("-o", "--output", required=True, help="rig.json to write")
+    cr.add_argument("--free-interior", help="interior parameters to refine too, e.g. c,x0,y0 (default none)")
+    cr.add_argument("--survey-field", action="store_true",
+                    help="adjust the targets too (inner constraints on the nominal field) instead of fixing them")
+    calibration_options(cr)
+    cr.set_defaults(func=cmd_calibrate_rig)
 
     m = sub.add_parser(
         "measure",

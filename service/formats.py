@@ -13,7 +13,7 @@ import math
 import os
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -241,6 +241,58 @@ def observations_from_json(data: Any, source: str = "points") -> tuple[list[str]
 
 def read_observations(path: str | os.PathLike[str]) -> tuple[list[str], np.ndarray]:
     return observations_from_json(read_json(path), str(path))
+
+
+class ImageObservations(NamedTuple):
+    """One image's identified targets in a multi-image observations file (calibration input).
+
+    ``camera`` (int) and ``epoch`` (str) are set for the images of a camera rig.
+    """
+
+    name: str
+    ids: list[str]
+    uv: np.ndarray
+    camera: int | None = None
+    epoch: str | None = None
+
+
+def image_observations_from_json(data: Any, source: str = "observations") -> list[ImageObservations]:
+    """``{"images": [{"name": .., "points": [{"id": .., "uv": [u, v]}, ...]}, ...]}``; a rig's images
+    also carry ``"camera": k`` and ``"epoch": "..."`` (images of one exposure share it)."""
+    if not isinstance(data, dict) or not isinstance(data.get("images"), list):
+        raise FormatError(f"{source}: expected {{'images': [{{'name': ..., 'points': [...]}}, ...]}}")
+    out = []
+    for k, im in enumerate(data["images"]):
+        if not isinstance(im, dict) or "points" not in im:
+            raise FormatError(f"{source}: image #{k} needs 'points'")
+        name = str(im.get("name", f"image{k}"))
+        ids, uv = observations_from_json(im["points"], f"{source}: image {name!r}")
+        camera = im.get("camera")
+        if camera is not None and (not isinstance(camera, int) or camera < 0):
+            raise FormatError(f"{source}: image {name!r} has a malformed 'camera' (want an index 0, 1, ...)")
+        epoch = im.get("epoch")
+        out.append(ImageObservations(name, ids, uv, camera, None if epoch is None else str(epoch)))
+    if not out:
+        raise FormatError(f"{source}: no images")
+    return out
+
+
+def read_image_observations(path: str | os.PathLike[str]) -> list[ImageObservations]:
+    return image_observations_from_json(read_json(path), str(path))
+
+
+def image_observations_to_json(images: list[ImageObservations]) -> dict[str, Any]:
+    out = []
+    for im in images:
+        d: dict[str, Any] = {"name": im.name}
+        if im.camera is not None:
+            d["camera"] = int(im.camera)
+        if im.epoch is not None:
+            d["epoch"] = im.epoch
+        d["points"] = [{"id": t, "uv": [round(float(q[0]), 5), round(float(q[1]), 5)]}
+                       for t, q in zip(im.ids, np.asarray(im.uv).reshape(-1, 2), strict=True)]
+        out.append(d)
+    return {"images": out}
 
 
 def matrix4_from_json(value: Any, what: str) -> np.ndarray:

@@ -1,0 +1,145 @@
+"""Rig calibration: the relative orientation of rigidly mounted cameras from simultaneous images.
+
+A synthetic rig of calibrated cameras (the reference camera and a variant) looks at a 3-D field
+from convergent, rolled epochs; images are exact projections plus Gaussian noise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from service.core.frames import inv_T, make_T
+from service.core.intersection import intersect_rays
+from service.core.results import Reason, SolveError
+from service.core.rig import RigImage, calibrate_rig, rig_from_dict
+from tests.core.test_bundle import NOISE_PX, TRUE_CAMERA, convergent_poses, field_3d
+
+SECOND_CAMERA = dataclasses.replace(TRUE_CAMERA, c_mm=12.4, x0_mm=-0.02, K1=-9e-4)
+#: camera 1 in camera 0's frame: 250 mm to the right, turned 12 deg towards camera 0's axis
+T_MASTER_CAMERA1 = make_T(Rotation.from_euler("xyz", [2.0, -12.0, 3.0], degrees=True).as_matrix(),
+                          [250.0, 5.0, -10.0])
+T_MASTER_CAMERA2 = make_T(Rotation.from_euler("xyz", [-15.0, 4.0, -2.0], degrees=True).as_matrix(),
+                          [10.0, 220.0, 15.0])
+
+
+def rig_images(rng, field, poses, cameras, T_master):
+    images = []
+    for e, T_field_rig in enumerate(poses):
+        for k, (cam, T_mc) in enumerate(zip(cameras, T_master, strict=True)):
+            T = T_field_rig @ T_mc
+            p_camera = (field.xyz - T[:3, 3]) @ T[:3, :3]
+            uv = cam.pixel_from_camera(p_camera)
+            seen = cam.in_image(uv, 5.0) & (p_camera[:, 2] > 0)
+            images.append(RigImage(f"e{e}", k, tuple(np.array(field.ids)[seen]),
+                                   uv[seen] + rng.normal(0.0, NOISE_PX, (int(seen.sum()), 2)), f"cam{k}-e{e}"))
+    return images
+
+
+def pose_z(result, k: int, T_true) -> np.ndarray:
+    """Errors of T_master_camera[k] in units of its sigma: rotation about, origin along camera 0's axes."""
+    T = result.rig.T_master_camera[k]
+    rot = Rotation.from_matrix(T[:3, :3] @ T_true[:3, :3].T).as_rotvec()
+    return np.r_[np.degrees(rot) / result.sigma_rotation_deg[k],
+                 (T[:3, 3] - T_true[:3, 3]) / result.sigma_position_mm[k]]
+
+
+@pytest.mark.parametrize("seed", [1, 3, 4])
+def test_rig_calibration_recovers_the_relative_orientation_within_3_sigma(seed):
+    rng = np.random.default_rng(seed)
+    field = field_3d(rng, 150)
+    cams = (TRUE_CAMERA, SECOND_CAMERA)
+    images = rig_images(rng, field, convergent_poses(rng, 8), cams, (np.eye(4), T_MASTER_CAMERA1))
+    result = calibrate_rig(cams, field, images, sigma_px=NOISE_PX)
+    z = pose_z(result, 1, T_MASTER_CAMERA1)
+    assert np.all(np.abs(z) < 3.0), z
+    assert 0.8 * NOISE_PX < result.sigma0_px < 1.25 * NOISE_PX
+    assert np.all(result.sigma_position_mm[1] > 0) and np.all(result.sigma_position_mm[1] < 0.1)
+    assert np.all(result.sigma_rotation_deg[0] == 0) and np.allclose(result.rig.T_master_camera[0], np.eye(4))
+    assert len(result.epochs) == 8 and result.T_field_rig.shape == (8, 4, 4)
+
+
+def test_rig_sigmas_agree_with_the_scatter_of_repeated_calibrations():
+    # 40 trials: a sample standard deviation is known to 1/sqrt(78) = 11 %; the band is 3 of those
+    rng = np.random.default_rng(5)
+    field = field_3d(rng, 80)
+    cams = (TRUE_CAMERA, SECOND_CAMERA)
+    poses = convergent_poses(rng, 6)
+    errors, sigmas = [], []
+    for _ in range(40):
+        result = calibrate_rig(cams, field, rig_images(rng, field, poses, cams, (np.eye(4), T_MASTER_CAMERA1)),
+                               sigma_px=NOISE_PX, reject_outliers=False,
+                               T_master_camera_init=(np.eye(4), T_MASTER_CAMERA1))
+        errors.append(pose_z(result, 1, T_MASTER_CAMERA1) * np.r_[result.sigma_rotation_deg[1],
+                                                                   result.sigma_position_mm[1]])
+        sigmas.append(np.r_[result.sigma_rotation_deg[1], result.sigma_position_mm[1]])
+    ratio = np.sqrt(np.mean(np.square(errors), axis=0)) / np.mean(sigmas, axis=0)
+    assert np.all((0.67 < ratio) & (ratio < 1.33)), ratio
+
+
+def test_three_camera_rig_with_refined_interiors():
+    rng = np.random.default_rng(9)
+    field = field_3d(rng, 150)
+    cams = (TRUE_CAMERA, SECOND_CAMERA, TRUE_CAMERA)
+    T_master = (np.eye(4), T_MASTER_CAMERA1, T_MASTER_CAMERA2)
+    images = rig_images(rng, field, convergent_poses(rng, 8), cams, T_master)
+    start = tuple(dataclasses.replace(c, c_mm=c.c_mm * 1.003) for c in cams)  # c off by 0.3 %
+    result = calibrate_rig(start, field, images, free_interior=("c_mm", "x0_mm", "y0_mm"), sigma_px=NOISE_PX)
+    for k in (1, 2):
+        assert np.all(np.abs(pose_z(result, k, T_master[k])) < 3.0)
+    for cam, true, sig in zip(result.rig.cameras, cams, result.sigma_interior, strict=True):
+        assert abs(cam.c_mm - true.c_mm) < 3 * sig["c_mm"] and sig["c_mm"] > 0 and sig["K1"] == 0.0
+
+
+def test_rig_json_gives_the_rig_forward_intersection_needs(rng):
+    field = field_3d(rng, 150)
+    cams = (TRUE_CAMERA, SECOND_CAMERA)
+    images = rig_images(rng, field, convergent_poses(rng, 6), cams, (np.eye(4), T_MASTER_CAMERA1))
+    result = calibrate_rig(cams, field, images, sigma_px=NOISE_PX)
+    rig = rig_from_dict(result.to_dict())
+    assert rig.n_cameras == 2 and np.allclose(rig.T_master_camera, result.rig.T_master_camera, atol=1e-8)
+    # a point 1.2 m in front of the master camera, seen by both cameras: intersected where it is
+    p_master = np.array([[30.0, -20.0, 1200.0]])
+    uv = [cam.pixel_from_camera((p_master - T[:3, 3]) @ T[:3, :3])
+          for cam, T in zip(cams, (np.eye(4), T_MASTER_CAMERA1), strict=True)]
+    got = intersect_rays(rig, uv)
+    assert got.valid[0] and np.linalg.norm(got.p_master[0] - p_master[0]) < 0.2
+    d = result.to_dict()
+    assert d["model"] == "rig" and len(d["sigma_position_mm"]) == 2 and "sigma0_px" in d["calibration"]
+
+
+def test_rig_can_survey_the_field_too(rng):
+    truth = field_3d(rng, 120)
+    nominal = dataclasses.replace(truth, xyz=truth.xyz + rng.normal(0.0, 0.3, truth.xyz.shape))
+    cams = (TRUE_CAMERA, SECOND_CAMERA)
+    images = rig_images(rng, truth, convergent_poses(rng, 8), cams, (np.eye(4), T_MASTER_CAMERA1))
+    fixed = calibrate_rig(cams, nominal, images, sigma_px=NOISE_PX)
+    surveyed = calibrate_rig(cams, nominal, images, field_fixed=False, sigma_px=NOISE_PX)
+    assert fixed.sigma0_px > 3 * NOISE_PX  # the wrong nominal field shows in the residuals
+    assert 0.8 * NOISE_PX < surveyed.sigma0_px < 1.25 * NOISE_PX
+    assert np.all(np.abs(pose_z(surveyed, 1, T_MASTER_CAMERA1)[:3]) < 3.0)  # rotation: scale-free
+
+
+def test_a_camera_never_oriented_with_the_master_is_refused(rng):
+    field = field_3d(rng, 100)
+    cams = (TRUE_CAMERA, SECOND_CAMERA)
+    images = rig_images(rng, field, convergent_poses(rng, 4), cams, (np.eye(4), T_MASTER_CAMERA1))
+    images = [im if im.camera == 0 or im.epoch != "e0" else dataclasses.replace(im, epoch="alone")
+              for im in images if im.camera == 0 or im.epoch == "e0"]
+    images = [im for im in images if not (im.camera == 0 and im.epoch == "alone")]
+    with pytest.raises(SolveError) as e:
+        calibrate_rig(cams, field, images)
+    assert e.value.reason == Reason.too_few_targets and "camera 0" in e.value.message
+
+
+def test_rig_needs_two_cameras_and_known_camera_indices(rng):
+    field = field_3d(rng, 50)
+    with pytest.raises(ValueError):
+        calibrate_rig((TRUE_CAMERA,), field, [])
+    with pytest.raises(SolveError) as e:
+        calibrate_rig((TRUE_CAMERA, TRUE_CAMERA), field, [RigImage("e0", 2, ("T0",), np.zeros((1, 2)))])
+    assert e.value.reason == Reason.bad_input
+    assert inv_T(np.eye(4)).shape == (4, 4)
