@@ -24,7 +24,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.staticfiles import StaticFiles
 
 from api import errors
-from api.routes import calibration, config, data, handeye, health, measure
+from api.routes import calibration, camera_calibration, config, data, handeye, health, measure
 from api.routes.config import load_runtime_overrides
 from api.security import resolve_token
 from api.ws import Hub
@@ -91,7 +91,7 @@ def create_app(settings: Settings) -> FastAPI:
         app.add_middleware(CORSMiddleware, allow_origins=settings.server.cors_origins, allow_methods=["*"],
                            allow_headers=["*"])
     # the hand-eye session routes come before /calibration/{kind} so that their paths win
-    for module in (health, measure, data, config, handeye, calibration):
+    for module in (health, measure, data, config, handeye, camera_calibration, calibration):
         app.include_router(module.router)
     if STATIC.is_dir():
         app.mount("/", StaticFiles(directory=STATIC, html=True), name="dashboard")

@@ -86,6 +86,18 @@ def test_hand_eye_session_from_proposed_poses_to_the_stored_result(uncalibrated,
         assert c.get("/calibration").json()["handeye"]["version"] == result["applied_version"]
 
         samples = c.get("/calibration/handeye/session/export").json()
+
+        # the same frames self-calibrate the camera (bundle adjustment over the API)
+        r = c.post("/calibration/camera/solve", json={"fix": ["K3", "B1", "B2"]})
+        assert r.status_code == 200, r.text
+        cam = r.json()["camera"]
+        assert r.json()["applied_version"] is None  # not applied without apply=true
+        assert abs(cam["c_mm"] - cell.camera.c_mm) < 5 * cam["sigma"]["c_mm"] + 1e-3
+        assert 0.002 < r.json()["sigma0_px"] < 0.1
+        bad = c.post("/calibration/camera/solve", json={"images": [{"name": "a", "points": [
+            {"id": "nope", "uv": [1, 2]}, {"id": "C1", "uv": [1, 2]}, {"id": "C2", "uv": [1, 2]},
+            {"id": "C3", "uv": [1, 2]}]}]})
+        assert bad.status_code == 422 and "not in the field" in bad.json()["message"]
     # the same samples solved offline by the CLI give the same answer
     path = tmp_path / "samples.json"
     path.write_text(json.dumps(samples))
