@@ -356,7 +356,7 @@ def _annotations(o: SheetOptions, field: Field, xy: Array,
         out.append(f'<rect id="ruler" x="{_f(ax)}" y="{_f(ay - 0.2)}" width="{_f(length)}" '
                    'height="0.4"/>')
         # Ticks every 10 mm (centred on their positions), longer every 50 and 100 mm.
-        n_ticks = max(1, int(round(length / 10.0)))
+        n_ticks = max(1, round(length / 10.0))
         for k in range(n_ticks + 1):
             h = tick if k % 10 == 0 else (0.6 * tick if k % 5 == 0 else 0.35 * tick)
             x = ax + k * length / n_ticks

@@ -111,7 +111,8 @@ def test_calibrate_handeye_recovers_X_and_Z_from_a_samples_file(tmp_path, rng):
 def test_calibrate_handeye_rejects_a_non_rigid_matrix(tmp_path):
     bad = np.eye(4)
     bad[0, 0] = 3.0
-    (tmp_path / "s.json").write_text(json.dumps([{"T_base_flange": bad.tolist(), "T_field_camera": np.eye(4).tolist()}]))
+    sample = {"T_base_flange": bad.tolist(), "T_field_camera": np.eye(4).tolist()}
+    (tmp_path / "s.json").write_text(json.dumps([sample]))
     r = run("calibrate", "handeye", "--samples", str(tmp_path / "s.json"))
     assert r.returncode == 2
     assert "rotation" in r.stderr and "Traceback" not in r.stderr

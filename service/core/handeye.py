@@ -134,7 +134,7 @@ class HandEyeResult:
             "rms_position_mm": float(self.rms_position_mm),
             "rms_rotation_deg": float(self.rms_rotation_deg),
             "sigma0": float(self.sigma0),
-            "n_samples": int(len(self.residual_position_mm)),
+            "n_samples": len(self.residual_position_mm),
             "motion": {k: float(v) for k, v in self.motion.items()},
             "warnings": list(self.warnings),
             "converged": bool(self.converged),
