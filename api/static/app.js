@@ -267,10 +267,14 @@
     card.querySelector(".device-error").textContent = r.state === "absent" ? "no robot is configured" : error;
   }
 
-  const CALIB_LABELS = { camera: "Camera (interior)", field: "Field (targets)", handeye: "Hand-eye" };
+  const CALIB_LABELS = { camera: "Camera (interior)", field: "Field (targets)", handeye: "Hand-eye",
+                         rig: "Rig (relative orientation)" };
 
   function renderCalibration(cal) {
-    const rows = Object.entries(cal).map(([kind, c]) => {
+    // a rig calibration matters only with two or more cameras
+    const nCameras = document.querySelectorAll("[data-camera]").length;
+    const entries = Object.entries(cal).filter(([kind, c]) => kind !== "rig" || nCameras > 1 || (c && c.present));
+    const rows = entries.map(([kind, c]) => {
       const missing = !c || !c.present;
       return el("tr", { class: missing ? "missing" : null, "data-kind": kind },
         el("td", { text: CALIB_LABELS[kind] || kind }),
