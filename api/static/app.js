@@ -272,7 +272,7 @@
 
   function renderCalibration(cal) {
     // a rig calibration matters only with two or more cameras
-    const nCameras = document.querySelectorAll("[data-camera]").length;
+    const nCameras = document.querySelectorAll(".device.camera[data-camera]").length;
     const entries = Object.entries(cal).filter(([kind, c]) => kind !== "rig" || nCameras > 1 || (c && c.present));
     const rows = entries.map(([kind, c]) => {
       const missing = !c || !c.present;
