@@ -191,6 +191,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(n_frames=args.frames, rate_hz=args.rate_hz, laps=args.laps, seed=args.seed)
 
 
+def cmd_handeye_session(args: argparse.Namespace) -> int:
+    from service.handeye_client import ClientError, default_token, run
+
+    try:
+        out = run(args.action, args.url, args.token or default_token(), args.poses, args.index, args.apply)
+    except ClientError as e:
+        print(f"posecell calibrate handeye-session: {e}", file=sys.stderr)
+        return EXIT_FAILED
+    _print_json(out)
+    return 0
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     from api.serve import run_serve
 
@@ -257,6 +269,22 @@ def build_parser() -> argparse.ArgumentParser:
     )
     he.add_argument("-o", "--output", help="also write the result to this JSON file")
     he.set_defaults(func=cmd_calibrate_handeye)
+
+    hs = cal.add_parser(
+        "handeye-session",
+        help="the guided hand-eye calibration of a running service",
+        description="Drives the service's guided hand-eye calibration: start (propose robot poses around the "
+        "field), move K (simulated cell only), sample (record at the robot's resting pose), status, solve "
+        "[--apply], export (samples for --samples). The token comes from --token, $POSECELL_TOKEN or the "
+        "service's api-token file.",
+    )
+    hs.add_argument("action", choices=["start", "move", "sample", "status", "solve", "export"])
+    hs.add_argument("index", nargs="?", type=int, help="proposal index for 'move'")
+    hs.add_argument("--url", default="http://127.0.0.1:8000", help="the service (default: %(default)s)")
+    hs.add_argument("--token", help="bearer token for the service")
+    hs.add_argument("--poses", type=int, default=12, help="proposed poses for 'start' (default: %(default)s)")
+    hs.add_argument("--apply", action="store_true", help="with 'solve': store and use the result")
+    hs.set_defaults(func=cmd_handeye_session)
 
     def calibration_options(q: argparse.ArgumentParser) -> None:
         q.add_argument("--sigma-px", type=float, default=0.1,

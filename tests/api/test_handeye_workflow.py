@@ -122,3 +122,24 @@ def test_hand_eye_session_refuses_samples_while_the_robot_moves(uncalibrated):
         assert r.status_code == 409 and r.json()["reason"] == "robot_moving"
         assert c.post("/calibration/handeye/session/move/99").status_code == 404
         time.sleep(mv.json()["duration_s"])
+
+
+def test_the_cli_drives_the_service_session(uncalibrated):
+    live = uncalibrated
+    live.wait_for(lambda h: h["status"] == "ok", timeout_s=180.0, what="the cell running")
+    posecell = Path(sys.executable).with_name("posecell")
+
+    def cli(*args):
+        return subprocess.run([str(posecell), "calibrate", "handeye-session", *args, "--url", live.url,
+                               "--token", live.token], capture_output=True, text=True, timeout=120)
+
+    r = cli("start", "--poses", "4")
+    assert r.returncode == 0, r.stderr
+    assert len(json.loads(r.stdout)["proposals"]) == 4
+    r = cli("status")
+    assert r.returncode == 0 and json.loads(r.stdout)["n_samples"] == 0
+    r = cli("solve")
+    assert r.returncode == 1 and "poor_motion" in r.stderr  # no samples yet: one clear sentence
+    r = subprocess.run([str(posecell), "calibrate", "handeye-session", "status", "--url", "http://127.0.0.1:9"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and "cannot be reached" in r.stderr
