@@ -55,7 +55,9 @@ def call(url: str, token: str, method: str, path: str, body: Any = None, timeout
         except (ValueError, AttributeError):
             raise ClientError(f"HTTP {e.code} from {url}{path}") from None
     except urllib.error.URLError as e:
-        raise ClientError(f"the service at {url} cannot be reached ({e.reason}); is `posecell serve` running?") from None
+        raise ClientError(
+            f"the service at {url} cannot be reached ({e.reason}); is `posecell serve` running?"
+        ) from None
 
 
 def run(action: str, url: str, token: str, poses: int = 12, index: int | None = None, apply: bool = False) -> Any:
