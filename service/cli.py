@@ -78,38 +78,34 @@ def cmd_calibrate_handeye(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_calibrate_camera(args: argparse.Namespace) -> int:
-    from service.calibrate_camera import camera_options, run_camera_calibration, summary
-
+def _run_calibration(verb: str, run: Callable[[], Any], summary: Callable[[Any], Any]) -> int:
+    """A calibration verb: input errors exit 2, a degenerate network exits 1 with ok:false JSON."""
     try:
-        result = run_camera_calibration(args.field, **camera_options(args))
+        result = run()
     except ValueError as e:
         raise CliError(str(e)) from None
     except SolveError as e:
         _print_json(Failure.from_error(e).to_dict())
-        print(f"posecell calibrate camera: {e.message}", file=sys.stderr)
+        print(f"posecell calibrate {verb}: {e.message}", file=sys.stderr)
         return EXIT_FAILED
-    _print_json(summary(result, args.output))
+    _print_json(summary(result))
     for w in result.warnings:
-        print(f"posecell calibrate camera: warning: {w}", file=sys.stderr)
+        print(f"posecell calibrate {verb}: warning: {w}", file=sys.stderr)
     return 0
+
+
+def cmd_calibrate_camera(args: argparse.Namespace) -> int:
+    from service.calibrate_camera import camera_options, run_camera_calibration, summary
+
+    return _run_calibration("camera", lambda: run_camera_calibration(args.field, **camera_options(args)),
+                            lambda r: summary(r, args.output))
 
 
 def cmd_calibrate_rig(args: argparse.Namespace) -> int:
     from service.calibrate_camera import rig_options, rig_summary, run_rig_calibration
 
-    try:
-        result = run_rig_calibration(args.field, args.camera, **rig_options(args))
-    except ValueError as e:
-        raise CliError(str(e)) from None
-    except SolveError as e:
-        _print_json(Failure.from_error(e).to_dict())
-        print(f"posecell calibrate rig: {e.message}", file=sys.stderr)
-        return EXIT_FAILED
-    _print_json(rig_summary(result, args.output))
-    for w in result.warnings:
-        print(f"posecell calibrate rig: warning: {w}", file=sys.stderr)
-    return 0
+    return _run_calibration("rig", lambda: run_rig_calibration(args.field, args.camera, **rig_options(args)),
+                            lambda r: rig_summary(r, args.output))
 
 
 def cmd_measure(args: argparse.Namespace) -> int:
