@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from service.core import detect_kernel, geometry_kernels
+from service.core import detect_kernel, geometry_kernels, resection_kernel
 from service.core.camera_model import BrownFraser
 from service.core.codes import POSECELL12, CodeFamily
 from service.core.decode import read_codes
@@ -153,6 +153,7 @@ class FrameMeasurer:
         # frame pays for their compilation
         detect_kernel.warm_up()
         geometry_kernels.warm_up()
+        resection_kernel.warm_up()
         decode_warm_up()
         self._radius_mm = np.where(
             np.isfinite(field.diameters_mm), field.diameters_mm, np.where(field.is_coded, 10.0, 6.0)

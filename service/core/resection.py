@@ -17,7 +17,8 @@ far below 1e-3 px at sub-pixel residuals). The adjustment is written by hand,
 not handed to ``scipy.optimize``: it is the product's core method, it runs per
 frame at >= 1 kHz with ~230 points, and a generic solver's overhead would exceed
 its arithmetic. Its per-point loops and the Levenberg-Marquardt iteration are
-compiled (:mod:`service.core.geometry_kernels`).
+compiled (:mod:`service.core.geometry_kernels`), and the whole adjustment with its data
+snooping is one compiled call (:mod:`service.core.resection_kernel`).
 """
 
 from __future__ import annotations
@@ -28,25 +29,25 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.core.camera_model import BrownFraser
-from service.core.frames import check_T, make_T
-from service.core.geometry_kernels import (
-    BEHIND,
-    CONVERGED,
-    NO_STEP,
-    SINGULAR,
-    adjust_kernel,
-    design_kernel,
-    is_rigid_kernel,
-    normal_kernel,
-    point_statistics_kernel,
-    residuals_kernel,
-    whitened_ideal_kernel,
-)
+from service.core.frames import check_T
+from service.core.geometry_kernels import is_rigid_kernel, whitened_ideal_kernel
 from service.core.resection_closed_form import (
     check_geometry,
     check_observations,
     closed_form_ideal,
     resect_closed_form,
+)
+from service.core.resection_kernel import (
+    DEGENERATE,
+    INLIER_BEHIND,
+    NO_CONVERGENCE,
+    NO_DESCENT,
+    NORMAL_SINGULAR,
+    OK,
+    START_BEHIND,
+    TOO_FEW_AGREE,
+    TOO_MANY_GROSS,
+    resect_kernel,
 )
 from service.core.results import Reason, SolveError
 
@@ -122,91 +123,67 @@ def _check_pose(T_field_camera: ArrayLike) -> Array:
     return T
 
 
-# -- closed form ----------------------------------------------------------------
+# -- the adjustment's failures ----------------------------------------------------
+#
+# The collinearity equations' analytic Jacobian: with p_c = R^T (p - t) and
+# R <- exp([dθ]x) R, dp_c/dθ = R^T [p - t]x and dp_c/dt = -R^T. In camera axes,
+# with xn = X/Z and yn = Y/Z, this gives the classical rows ``c [xn yn, -(1 + xn^2), yn]``
+# and ``c [1 + yn^2, -xn yn, -xn]`` for the rotation and ``-(c/Z) [1, 0, -xn]``,
+# ``-(c/Z) [0, 1, -yn]`` for the centre; both blocks are then turned to field axes by R
+# (``geometry_kernels.design_kernel``). Levenberg-Marquardt's gain-ratio control of the
+# damping copes with large residuals (gross errors not yet rejected make Gauss-Newton
+# zig-zag), and a stationary cost counts as converged: the step tolerance may be out of
+# reach in a flat valley. On convergence by the step tolerance the residuals and design
+# were evaluated just before that step, below 1e-10 of the scene's size, so they stand
+# for the final pose (to ~1e-10 px) (``geometry_kernels.adjust_kernel``).
+#
+# Data snooping (``resection_kernel``): with a priori ``sigma_px`` each point's statistic
+# ``v_i^T Qvv_i^-1 v_i / sigma^2`` is chi^2(2) (Baarda's w-test, 2 dof). Otherwise sigma^2
+# is the a-posteriori variance without the point, with ``m`` degrees of freedom
+# independent of it (the statistic is then 2 F(2, m)), capped at ``max_sigma_px**2`` so
+# that many gross errors cannot hide behind the sigma0 they inflate (chi^2(2) again).
+# Both quantiles have closed forms.
 
 
-def _residuals(R: Array, t: Array, p: Array, xy: Array, W: Array, c: float) -> tuple[Array, Array]:
-    """Whitened residuals (n, 2) px and camera-frame points (n, 3) mm."""
-    r, pc, _, _ = residuals_kernel(np.ascontiguousarray(R), np.ascontiguousarray(t), p, xy, W, float(c))
-    return r, pc
-
-
-def _design(R: Array, t: Array, p: Array, W: Array, c: float, pc: Array) -> Array:
-    """Analytic Jacobian (n, 2, 6) of the whitened computed coordinates wrt [dθ, dt].
-
-    With p_c = R^T (p - t) and R <- exp([dθ]x) R: dp_c/dθ = R^T [p - t]x and
-    dp_c/dt = -R^T. In camera axes, with xn = X/Z and yn = Y/Z, this gives the
-    classical rows ``c [xn yn, -(1 + xn^2), yn]`` and ``c [1 + yn^2, -xn yn, -xn]``
-    for the rotation and ``-(c/Z) [1, 0, -xn]``, ``-(c/Z) [0, 1, -yn]`` for the
-    centre; both blocks are then turned to field axes by R.
-    """
-    return design_kernel(np.ascontiguousarray(R), W, float(c), pc)
-
-
-def _adjust(
-    T: Array, p: Array, xy: Array, W: Array, c: float, scale_mm: float, max_iter: int
-) -> tuple[Array, int, Array, Array, Array, bool]:
-    """Levenberg-Marquardt on the collinearity equations.
-
-    Returns the pose, the iterations, the residuals (n, 2), camera-frame points
-    (n, 3) and design matrix (n, 2, 6), and whether it converged. On convergence
-    by the step tolerance they were evaluated just before that step, which is
-    below 1e-10 of the scene's size, so they stand for the final pose (to
-    ~1e-10 px) without another evaluation.
-    """
-    R, t, it, r, pc, A3, outcome = adjust_kernel(
-        np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), p, xy, W, c, scale_mm, max_iter)
-    if outcome == BEHIND:
+def _raise(status: int, n: int, min_keep: int, max_iter: int, max_sigma_px: float, inliers: NDArray[np.bool_],
+           n_in: int, sigma0: float, behind: NDArray[np.bool_]) -> None:
+    """The ``SolveError`` of a failed :func:`~service.core.resection_kernel.resect_kernel`."""
+    if status == START_BEHIND:
         raise SolveError(
             Reason.behind_camera,
             "The start pose puts a target in the camera's focal plane (Z = 0).",
         )
-    if outcome == SINGULAR:
+    if status == NORMAL_SINGULAR:
         raise SolveError(Reason.degenerate_geometry, "The resection's normal equations are singular.")
-    if outcome == NO_STEP:
+    if status == NO_DESCENT:
         raise SolveError(Reason.no_convergence, "The resection found no step that lowers its cost.")
-    # Gain-ratio control of the damping: large residuals (gross errors not yet rejected) make
-    # Gauss-Newton zig-zag, damping restores descent. A stationary cost counts as converged:
-    # the step tolerance may be out of reach in a flat valley.
-    return make_T(R, t), it, r, pc, A3, outcome == CONVERGED
-
-
-def _point_statistics(v: Array, A: Array, Qxx: Array, sign: float) -> tuple[Array, Array]:
-    """Each point's ``v_i^T Q_i^-1 v_i`` and ``det Q_i`` (n,), ``Q_i = I + sign A_i Qxx A_i^T``.
-
-    ``sign = -1`` gives the cofactor of an adjusted point's residual, ``+1`` that
-    of a point left out of the adjustment (its prediction error).
-    """
-    return point_statistics_kernel(v, A, Qxx, float(sign))
-
-
-def _scores(
-    T2: Array,
-    s2_post: Array,
-    m: int,
-    sigma_px: float | None,
-    max_sigma_px: float,
-    critical_value: float | None,
-) -> Array:
-    """Squared test statistics ``T2 / sigma^2`` over their critical values (n,); > 1: gross error.
-
-    With a priori ``sigma_px`` the statistic is chi^2(2) (Baarda's w-test, 2 dof).
-    Otherwise sigma^2 is ``s2_post``, an a-posteriori variance with ``m`` degrees
-    of freedom independent of the point (the statistic is then 2 F(2, m)), capped
-    at ``max_sigma_px**2`` so that many gross errors cannot hide behind the
-    sigma0 they inflate (chi^2(2) again). Both quantiles have closed forms.
-    """
-    chi2_crit = -2.0 * np.log(SNOOPING_ALPHA)  # P(chi^2(2) > x) = exp(-x/2)
-    if sigma_px is not None:
-        crit = critical_value**2 if critical_value is not None else chi2_crit
-        return T2 / (sigma_px**2 * crit)
-    capped = s2_post > max_sigma_px**2
-    s2 = np.where(capped, max_sigma_px**2, np.maximum(s2_post, SNOOPING_SIGMA_FLOOR_PX**2))
-    if critical_value is not None:
-        return T2 / (s2 * critical_value**2)
-    # P(F(2, m) > x) = (1 + 2x/m)^(-m/2); the statistic is 2F.
-    f_crit = m * (SNOOPING_ALPHA ** (-2.0 / m) - 1.0) if m >= 1 else np.inf
-    return T2 / (s2 * np.where(capped, chi2_crit, f_crit))
+    if status == DEGENERATE:
+        raise SolveError(Reason.degenerate_geometry, "The points do not determine the camera pose.")
+    if status == TOO_MANY_GROSS:
+        raise SolveError(
+            Reason.too_few_targets,
+            f"Too many gross errors: rejecting another point would leave fewer "
+            f"than {min_keep} of {n}.",
+            {"rejected": np.flatnonzero(~inliers).tolist(), "n_targets": n},
+        )
+    if status == NO_CONVERGENCE:
+        raise SolveError(
+            Reason.no_convergence, f"The resection did not converge in {max_iter} iterations."
+        )
+    if status == TOO_FEW_AGREE:
+        raise SolveError(
+            Reason.too_few_targets,
+            f"Too few targets agree: after rejecting {n - n_in} of {n}, the rest still fit "
+            f"with sigma0 = {sigma0:.2f} px, more than max_sigma_px = {max_sigma_px:g} px.",
+            {"rejected": np.flatnonzero(~inliers).tolist(), "sigma0_px": sigma0, "n_targets": n},
+        )
+    if status == INLIER_BEHIND:
+        raise SolveError(
+            Reason.behind_camera,
+            f"{int(np.sum(behind))} of {n_in} targets lie behind the adjusted camera.",
+            {"behind": np.flatnonzero(behind).tolist()},
+        )
+    raise AssertionError(f"unknown resection status {status}")
 
 
 def resect(
@@ -278,103 +255,28 @@ def resect(
         T = closed_form_ideal(p, xy, c, spread)
     else:
         T = _check_pose(T_field_camera_init)
-    # W (px/mm) whitens ideal residuals
-    d_mm = p - T[:3, 3]
-    scale_mm = max(float(np.sqrt(np.einsum("ij,ij->", d_mm, d_mm) / n)), 1e-9)
-    ss0 = residuals_kernel(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), p, xy, W, c)[2]
-    initial_cost = 0.5 * ss0 if ss0 == ss0 else np.inf
-    test = (sigma_px, max_sigma_px, critical_value)
-
-    inliers = np.ones(n, dtype=bool)
-    min_keep = max(4, -(-n // 2))
-    n_iter, readmitted = 0, False
-    while True:
-        idx = np.flatnonzero(inliers)
-        if len(idx) == n:  # no copies while every point is in (the usual case)
-            T, it, v, pc, A, converged = _adjust(T, p, xy, W, c, scale_mm, max_iter)
-        else:
-            T, it, v, pc, A, converged = _adjust(T, p[idx], xy[idx], W[idx], c, scale_mm, max_iter)
-        n_iter += it
-        N = normal_kernel(A, v)[0]
-        d = np.sqrt(np.diag(N))
-        ev = np.linalg.eigvalsh(N / np.outer(d, d)) if np.all(d > 0) else np.zeros(6)
-        if not ev[0] > 1e-12 * ev[-1]:
-            raise SolveError(
-                Reason.degenerate_geometry, "The points do not determine the camera pose."
-            )
-        Qxx = np.linalg.inv(N)
-        f = 2 * len(idx) - 6
-        omega = float(np.sum(v * v))
-        score = np.zeros(len(idx))
-        if reject_outliers:
-            T2, det = _point_statistics(v, A, Qxx, -1.0)
-            score = _scores(T2, np.maximum(omega - T2, 0.0) / max(f - 2, 1), f - 2, *test)
-            score[det <= 1e-6] = 0.0  # a point the pose must pass through cannot be tested
-        worst = int(np.argmax(score))
-        if score[worst] > 1.0:
-            # Even an unsettled adjustment (slow with large residuals) shows this.
-            if len(idx) - 1 < min_keep:
-                raise SolveError(
-                    Reason.too_few_targets,
-                    f"Too many gross errors: rejecting another point would leave fewer "
-                    f"than {min_keep} of {n}.",
-                    {"rejected": np.flatnonzero(~inliers).tolist(), "n_targets": n},
-                )
-            inliers[idx[worst]] = False
-            continue
-        if not converged:
-            raise SolveError(
-                Reason.no_convergence, f"The resection did not converge in {max_iter} iterations."
-            )
-        out = np.flatnonzero(~inliers)
-        if readmitted or len(out) == 0:
-            break
-        # Swamping: next to a gross error still in the adjustment a good point can
-        # look wrong. Test the rejected points once more, as new observations
-        # against the clean solution, and take back those that fit.
-        readmitted = True
-        r_out, pc_out = _residuals(T[:3, :3], T[:3, 3], p[out], xy[out], W[out], c)
-        T2, _ = _point_statistics(
-            r_out, _design(T[:3, :3], T[:3, 3], p[out], W[out], c, pc_out), Qxx, 1.0
-        )
-        back = out[_scores(T2, np.full(len(out), omega / f), f, *test) <= 1.0]
-        if len(back) == 0:
-            break
-        inliers[back] = True
-
-    sigma0 = float(np.sqrt(omega / f))  # f >= 2 since n >= 4
-    if reject_outliers and sigma_px is None and sigma0 > max_sigma_px:
-        raise SolveError(
-            Reason.too_few_targets,
-            f"Too few targets agree: after rejecting {n - len(idx)} of {n}, the rest still fit "
-            f"with sigma0 = {sigma0:.2f} px, more than max_sigma_px = {max_sigma_px:g} px.",
-            {"rejected": np.flatnonzero(~inliers).tolist(), "sigma0_px": sigma0, "n_targets": n},
-        )
-    behind = pc[:, 2] <= 0
-    if np.any(behind):
-        raise SolveError(
-            Reason.behind_camera,
-            f"{int(np.sum(behind))} of {len(idx)} targets lie behind the adjusted camera.",
-            {"behind": idx[behind].tolist()},
-        )
-    r_all = np.empty((n, 2))
-    r_all[idx] = v
-    if len(idx) < n:
-        out = np.flatnonzero(~inliers)
-        r_all[out] = _residuals(T[:3, :3], T[:3, 3], p[out], xy[out], W[out], c)[0]
-    cov = (sigma_px if sigma_px is not None else sigma0) ** 2 * Qxx
-    sig = np.sqrt(np.diag(cov))
+    nan = np.nan
+    status, R, t, n_iter, inliers, r_all, _, cov, sigma0, omega, ss0, behind = resect_kernel(
+        np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), p, xy, W, c, int(max_iter),
+        bool(reject_outliers), nan if sigma_px is None else float(sigma_px), float(max_sigma_px),
+        nan if critical_value is None else float(critical_value), SNOOPING_ALPHA, SNOOPING_SIGMA_FLOOR_PX)
+    n_in = int(np.count_nonzero(inliers))
+    if status != OK:
+        _raise(status, n, max(4, -(-n // 2)), max_iter, max_sigma_px, inliers, n_in, sigma0, behind)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    sig = np.sqrt(cov.diagonal())
     return ResectionResult(
         T_field_camera=T,
         covariance=cov,
         sigma0_px=sigma0,
-        rms_px=float(np.sqrt(omega / (2 * len(idx)))),
+        rms_px=float(np.sqrt(omega / (2 * n_in))),
         sigma_position_mm=sig[3:],
         sigma_rotation_deg=np.degrees(sig[:3]),
         residuals_px=r_all,
         inliers=inliers,
         n_iter=n_iter,
         converged=True,
-        initial_cost=initial_cost,
+        initial_cost=0.5 * ss0 if ss0 == ss0 else np.inf,
         final_cost=0.5 * omega,
     )

@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from service.core.camera_model import BrownFraser
 from service.core.frames import make_T
-from service.core.geometry_kernels import scatter_kernel
+from service.core.resection_kernel import centre_planar_kernel, rotation_from_centre_kernel, spread_kernel
 from service.core.results import Reason, SolveError
 
 Array = NDArray[np.float64]
@@ -53,21 +53,21 @@ def check_observations(p_field: ArrayLike, uv: ArrayLike) -> tuple[Array, Array]
 
 def check_geometry(p: Array, xy: Array) -> Array:
     """Raise on collinear field or image points; return the field points' spread (3,)."""
-    # both scatter matrices in one compiled pass: as array expressions they were a sixth of the
-    # resection of an ROI frame
-    S, Sx = scatter_kernel(np.require(p, np.float64, ["C", "W"]), np.require(xy, np.float64, ["C", "W"]))
-    s = np.sqrt(np.maximum(np.linalg.eigvalsh(S)[::-1], 0.0))  # spread along principal axes
+    # compiled: as array expressions the scatter matrices and their spreads were a sixth of
+    # the resection of an ROI frame
+    s, s_img = spread_kernel(np.require(p, np.float64, ["C", "W"]), np.require(xy, np.float64, ["C", "W"]))
     if s[0] <= 0 or s[1] < COLLINEAR_RATIO * s[0]:
         msg = "The field points are collinear (or coincide): the rotation about them is unknown."
         raise SolveError(Reason.degenerate_geometry, msg)
-    sxx, syy, sxy = Sx[0, 0], Sx[1, 1], Sx[0, 1]
-    # Closed-form eigenvalues of the 2x2 scatter matrix.
-    half_tr, root = 0.5 * (sxx + syy), np.hypot(0.5 * (sxx - syy), sxy)
-    s_img = np.sqrt(np.maximum([half_tr + root, half_tr - root], 0.0))
     if s_img[0] <= 0 or s_img[1] < COLLINEAR_RATIO * s_img[0]:
         msg = "The image points are collinear: the camera looks at the field edge-on."
         raise SolveError(Reason.degenerate_geometry, msg)
     return s
+
+
+def _c_array(a: Array) -> Array:
+    """``a`` as a writable C array of float64: the one array type the kernels know."""
+    return np.require(a, np.float64, ["C", "W"])
 
 
 def _normalizer(points: Array) -> Array:
@@ -101,52 +101,20 @@ def _rotation_from_centre(p: Array, xy: Array, c: float, C_field: Array) -> Arra
     The orthogonal Procrustes solution over all points, so every point counts,
     not only the four the paper's closed form needs.
     """
-    d = p - C_field
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    b = np.column_stack([xy, np.full(len(xy), c)])
-    b /= np.linalg.norm(b, axis=1, keepdims=True)
-    U, _, Vt = np.linalg.svd(d.T @ b)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
+    # compiled, as is the planar centre: in numpy they were two thirds of the full frame's resection
+    # from the coded targets
+    return rotation_from_centre_kernel(_c_array(p), _c_array(xy), float(c), _c_array(C_field))
 
 
 def _centre_planar(p: Array, n_img: Array) -> Array:
     """Projection centre (3,) mm from the plane-to-plane transformation, in front of the plane."""
-    m = p.mean(axis=0)
-    _, V = np.linalg.eigh((p - m).T @ (p - m))
-    e = V[:, ::-1].T.copy()  # rows: in-plane axes by decreasing spread, then the normal
-    if np.linalg.det(e) < 0:
-        e[2] *= -1
-    ab = (p - m) @ e[:2].T  # in-plane coordinates, mm
-    Na, Ni = _normalizer(ab), _normalizer(n_img)
-    a = ab @ Na[:2, :2].T + Na[:2, 2]
-    x = n_img @ Ni[:2, :2].T + Ni[:2, 2]
-    n = len(a)
-    A = np.zeros((2 * n, 9))
-    A[0::2, 0:2] = a
-    A[0::2, 2] = 1.0
-    A[1::2, 3:5] = a
-    A[1::2, 5] = 1.0
-    A[0::2, 6:8] = -x[:, :1] * a
-    A[0::2, 8] = -x[:, 0]
-    A[1::2, 6:8] = -x[:, 1:] * a
-    A[1::2, 8] = -x[:, 1]
-    H = np.linalg.solve(Ni, _null_vector(A, "plane-to-plane transformation").reshape(3, 3) @ Na)
-    # H ~ [r1 r2 t] of T_camera_plane; of the two mirror solutions the one with
-    # the points in front of the camera has positive depth at the centroid (a = 0).
-    lam = np.sign(H[2, 2]) / np.sqrt(np.linalg.norm(H[:, 0]) * np.linalg.norm(H[:, 1]))
-    r1, r2, t = lam * H[:, 0], lam * H[:, 1], lam * H[:, 2]
-    r3 = np.array(
-        [
-            r1[1] * r2[2] - r1[2] * r2[1],
-            r1[2] * r2[0] - r1[0] * r2[2],
-            r1[0] * r2[1] - r1[1] * r2[0],
-        ]
-    )
-    U, _, Wt = np.linalg.svd(np.column_stack([r1, r2, r3]))
-    R_camera_plane = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Wt)]) @ Wt
-    C_plane = -R_camera_plane.T @ t
-    return m + C_plane @ e
+    C, unique = centre_planar_kernel(_c_array(p), _c_array(n_img))
+    if not unique:
+        raise SolveError(
+            Reason.degenerate_geometry,
+            "The points do not determine a unique plane-to-plane transformation (too many of them are collinear).",
+        )
+    return C
 
 
 def _centre_dlt(p: Array, n_img: Array) -> Array:
