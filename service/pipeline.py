@@ -18,11 +18,12 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from itertools import repeat
 
 import numpy as np
 from numpy.typing import NDArray
 
-from service.core import detect_kernel, geometry_kernels, resection_kernel
+from service.core import detect_kernel, geometry_kernels, resection_kernel, roi_kernel
 from service.core.camera_model import BrownFraser
 from service.core.codes import POSECELL12, CodeFamily
 from service.core.decode import read_codes
@@ -41,17 +42,15 @@ def _observations(ids: Sequence[str], uv: Array, residuals: Array, coded: list[b
                   used: list[bool]) -> tuple[TargetObservation, ...]:
     """TargetObservations of the rows of ``uv`` and ``residuals`` (N, 2) px. A frozen dataclass's
     ``__init__`` sets each field through ``object.__setattr__``: for the ~230 targets of a frame
-    that cost a fifth of an ROI frame's budget, so the instances are made empty and their fields
-    written to their ``__dict__``; the (u, v) pairs come from zipping the columns as Python floats."""
-    new = object.__new__
-    out = []
+    that cost a fifth of an ROI frame's budget, so the instances are made empty (by ``map``, without
+    a Python call each) and their fields written to their ``__dict__``; the (u, v) pairs come from
+    zipping the columns as Python floats."""
+    out = list(map(object.__new__, repeat(TargetObservation, len(ids))))
     pairs = zip(uv[:, 0].tolist(), uv[:, 1].tolist(), strict=True)
     res = zip(residuals[:, 0].tolist(), residuals[:, 1].tolist(), strict=True)
-    for tid, q, r, c, u in zip(ids, pairs, res, coded, used, strict=True):
-        t = new(TargetObservation)
+    for t, tid, q, r, c, u in zip(out, ids, pairs, res, coded, used, strict=True):
         d = t.__dict__
         d["id"], d["uv"], d["residual_px"], d["coded"], d["used"] = tid, q, r, c, u
-        out.append(t)
     return tuple(out)
 
 
@@ -154,10 +153,14 @@ class FrameMeasurer:
         detect_kernel.warm_up()
         geometry_kernels.warm_up()
         resection_kernel.warm_up()
+        roi_kernel.warm_up()
         decode_warm_up()
         self._radius_mm = np.where(
             np.isfinite(field.diameters_mm), field.diameters_mm, np.where(field.is_coded, 10.0, 6.0)
         ) / 2.0
+        # per field row, for the compiled window sizes
+        self._radius_c = self._radius_mm * camera.c_mm
+        self._coded = np.ascontiguousarray(field.codes >= 0)
 
     def reset(self) -> None:
         """Forget the pose history: the next frame is measured in full."""
@@ -324,15 +327,13 @@ class FrameMeasurer:
             blobs, found = measure_windows(image, uv_pred, half, s.detect)
         except (ValueError, SolveError):
             return None
-        ok = found >= 0
-        if ok.sum() < max(s.min_targets, s.roi_min_fraction * len(rows)):
+        # compiled: as array expressions the gathering and the check were 2 % of an ROI frame
+        rows_ok, uv, worst_px2 = roi_kernel.gather_found_kernel(found, blobs.uv, rows, uv_pred)
+        if len(rows_ok) < max(s.min_targets, s.roi_min_fraction * len(rows)):
             return None
-        uv = blobs.uv[found[ok]]
-        if check_centred:
-            off = uv - np.rint(uv_pred[ok])
-            if np.max(off[:, 0] ** 2 + off[:, 1] ** 2) > (slack * s.roi_prediction_error_px) ** 2:
-                return None
-        return rows[ok], uv
+        if check_centred and worst_px2 > (slack * s.roi_prediction_error_px) ** 2:
+            return None
+        return rows_ok, uv
 
     def _window_half_size(self, rows: NDArray[np.int64], depth: Array, slack: float = 1.0) -> NDArray[np.int64]:
         """Half window (px) per target at ``depth`` (mm): the disk's image radius, the blur, and the prediction error.
@@ -340,9 +341,7 @@ class FrameMeasurer:
         A coded target's window stays inside its dark gap (the ring starts at 2 R; the
         square window's corners and the blur need the margin).
         """
-        s = self.settings
-        r_px = self._radius_mm[rows] * self.camera.c_mm / np.maximum(depth, 1.0) / self.camera.mean_pixel_size_mm
-        half = np.ceil(r_px + 3.0 + slack * s.roi_prediction_error_px)
-        coded = self.field.codes[rows] >= 0
-        half[coded] = np.minimum(half[coded], np.floor(2.0 * r_px[coded] - 4.0))
-        return np.maximum(half, 3).astype(np.int64)
+        # compiled: as array expressions they were 2 % of an ROI frame
+        return roi_kernel.window_half_size_kernel(self._radius_c, self._coded, rows, depth,
+                                                  float(self.camera.mean_pixel_size_mm),
+                                                  slack * self.settings.roi_prediction_error_px)

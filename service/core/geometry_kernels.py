@@ -47,8 +47,8 @@ def residuals_kernel(R, t, p, xy, W, c):
 
 @njit(cache=True, error_model="numpy")
 def design_kernel(R, W, c, pc):
-    """Jacobian (n, 2, 6) of the whitened computed coordinates wrt [dθ, dt], field axes
-    (see ``resection._design``)."""
+    """Jacobian (n, 2, 6) of the whitened computed coordinates wrt [dθ, dt], field axes (the
+    formulas are in :mod:`service.core.resection`)."""
     n = pc.shape[0]
     A = np.empty((n, 2, 6))
     b = np.empty((2, 6))
@@ -385,17 +385,19 @@ CONVERGED, MAX_ITER, BEHIND, SINGULAR, NO_STEP = 0, 1, 2, 3, 4
 
 @njit(cache=True, error_model="numpy")
 def adjust_kernel(R, t, p, xy, W, c, scale_mm, max_iter):
-    """Levenberg-Marquardt on the collinearity equations (see ``resection._adjust``).
+    """Levenberg-Marquardt on the collinearity equations (see :mod:`service.core.resection`).
 
     Returns R (3, 3), t (3,), iterations, residuals (n, 2), camera-frame points (n, 3), design
-    (n, 2, 6) and the outcome (CONVERGED, MAX_ITER, BEHIND, SINGULAR, NO_STEP).
+    (n, 2, 6), its normal matrix (6, 6) (the snooping's, which needs both), ``sum(r**2)`` at the
+    start and the outcome (CONVERGED, MAX_ITER, BEHIND, SINGULAR, NO_STEP).
     """
     R, t = R.copy(), t.copy()
     r, pc, ss, n_front = residuals_kernel(R, t, p, xy, W, c)
-    cost = 0.5 * ss
+    ss0, cost = ss, 0.5 * ss
     A3 = np.zeros((p.shape[0], 2, 6))
+    N = np.zeros((6, 6))
     if not np.isfinite(cost):
-        return R, t, 0, r, pc, A3, BEHIND
+        return R, t, 0, r, pc, A3, N, ss0, BEHIND
     tol_mm = 1e-10 * scale_mm
     lam = 0.0  # Marquardt's damping, relative to diag(N); 0 = Gauss-Newton
     for it in range(1, max_iter + 1):
@@ -403,11 +405,11 @@ def adjust_kernel(R, t, p, xy, W, c, scale_mm, max_iter):
         N, g = normal_kernel(A3, r)
         delta = _solve6(N, g)
         if not np.all(np.isfinite(delta)):
-            return R, t, it, r, pc, A3, SINGULAR
+            return R, t, it, r, pc, A3, N, ss0, SINGULAR
         step = np.sqrt(delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2)
         turn = np.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2)
         if step + scale_mm * turn < tol_mm:
-            return rotation_from_rotvec_kernel(delta[:3]) @ R, t + delta[3:], it, r, pc, A3, CONVERGED
+            return rotation_from_rotvec_kernel(delta[:3]) @ R, t + delta[3:], it, r, pc, A3, N, ss0, CONVERGED
         while True:
             if lam > 0.0:
                 Nl = N.copy()
@@ -425,15 +427,16 @@ def adjust_kernel(R, t, p, xy, W, c, scale_mm, max_iter):
                 break
             lam = max(4.0 * lam, 1e-6)
             if lam > 1e12:
-                return R, t, it, r, pc, A3, NO_STEP
+                return R, t, it, r, pc, A3, N, ss0, NO_STEP
         if rho > 0.75:
             lam = 0.0 if lam < 1e-6 else lam / 4.0
         elif rho < 0.25:
             lam = max(2.0 * lam, 1e-6)
         if cost - cost_new <= 1e-12 * cost:
-            return R, t, it, r, pc, A3, CONVERGED
+            return R, t, it, r, pc, A3, N, ss0, CONVERGED
         R, t, r, pc, cost, n_front = R_new, t_new, r_new, pc_new, cost_new, n_front_new
-    return R, t, max_iter, r, pc, design_kernel(R, W, c, pc), MAX_ITER
+    A3 = design_kernel(R, W, c, pc)
+    return R, t, max_iter, r, pc, A3, normal_kernel(A3, r)[0], ss0, MAX_ITER
 
 
 @njit(cache=True, error_model="numpy")

@@ -119,11 +119,11 @@ def _check_pose(T_field_camera: ArrayLike) -> Array:
     only judges a pose that fails this cheaper test."""
     T = np.array(T_field_camera, dtype=np.float64)
     if T.shape != (4, 4) or not is_rigid_kernel(T, 1e-6):  # compiled: numpy calls cost 0.03 ms per frame
-        T = check_T(T, "T_field_camera_init")
+        T = np.ascontiguousarray(check_T(T, "T_field_camera_init"))
     return T
 
 
-# -- the adjustment's failures ----------------------------------------------------
+# -- the adjustment (compiled) and its failures ------------------------------------
 #
 # The collinearity equations' analytic Jacobian: with p_c = R^T (p - t) and
 # R <- exp([dθ]x) R, dp_c/dθ = R^T [p - t]x and dp_c/dt = -R^T. In camera axes,
@@ -256,23 +256,19 @@ def resect(
     else:
         T = _check_pose(T_field_camera_init)
     nan = np.nan
-    status, R, t, n_iter, inliers, r_all, _, cov, sigma0, omega, ss0, behind = resect_kernel(
-        np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), p, xy, W, c, int(max_iter),
-        bool(reject_outliers), nan if sigma_px is None else float(sigma_px), float(max_sigma_px),
-        nan if critical_value is None else float(critical_value), SNOOPING_ALPHA, SNOOPING_SIGMA_FLOOR_PX)
-    n_in = int(np.count_nonzero(inliers))
+    status, T, n_iter, inliers, n_in, r_all, cov, sig, sigma0, rms, omega, ss0, behind = resect_kernel(
+        T, p, xy, W, c, int(max_iter), bool(reject_outliers), nan if sigma_px is None else float(sigma_px),
+        float(max_sigma_px), nan if critical_value is None else float(critical_value), SNOOPING_ALPHA,
+        SNOOPING_SIGMA_FLOOR_PX)
     if status != OK:
         _raise(status, n, max(4, -(-n // 2)), max_iter, max_sigma_px, inliers, n_in, sigma0, behind)
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    sig = np.sqrt(cov.diagonal())
     return ResectionResult(
         T_field_camera=T,
         covariance=cov,
         sigma0_px=sigma0,
-        rms_px=float(np.sqrt(omega / (2 * n_in))),
+        rms_px=rms,
         sigma_position_mm=sig[3:],
-        sigma_rotation_deg=np.degrees(sig[:3]),
+        sigma_rotation_deg=sig[:3],
         residuals_px=r_all,
         inliers=inliers,
         n_iter=n_iter,
