@@ -108,6 +108,21 @@ def cmd_calibrate_rig(args: argparse.Namespace) -> int:
                             lambda r: rig_summary(r, args.output))
 
 
+def cmd_calibrate_robot(args: argparse.Namespace) -> int:
+    from service.calibrate_robot import run_robot_calibration
+
+    try:
+        out = run_robot_calibration(args.robot, args.samples, args.test, args.tool_mm)
+    except SolveError as e:
+        _print_json(Failure.from_error(e).to_dict())
+        print(f"posecell calibrate robot: {e.message}", file=sys.stderr)
+        return EXIT_FAILED
+    if args.output:
+        formats.write_json_atomic(args.output, out)
+    _print_json(out)
+    return 0
+
+
 def cmd_measure(args: argparse.Namespace) -> int:
     from service.core.codes import FAMILIES
     from service.core.detect import DetectSettings
@@ -265,6 +280,22 @@ def build_parser() -> argparse.ArgumentParser:
     )
     he.add_argument("-o", "--output", help="also write the result to this JSON file")
     he.set_defaults(func=cmd_calibrate_handeye)
+
+    rb = cal.add_parser(
+        "robot",
+        help="correct the robot model from measured flange positions",
+        description="Identifies the arm's kinematic errors (DH rows, base placement, the measured point on the "
+        "flange) from a CSV of joint angles joint_1..joint_6 (deg) and measured positions (x_mm, y_mm, z_mm, or "
+        "the laser-tracker form x_t..z_t + x_dif..z_dif), with sigma and the combinations that cannot be "
+        "separated; --test reports the error on poses that took no part.",
+    )
+    rb.add_argument("--robot", required=True, choices=["ur5", "ur10e", "kr15"], help="the nominal model")
+    rb.add_argument("--samples", required=True, type=Path, help="calibration poses (CSV)")
+    rb.add_argument("--test", type=Path, help="test poses (CSV), reported before/after")
+    rb.add_argument("--tool-mm", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                    help="the measured point on the flange, when the CSV has no commanded positions")
+    rb.add_argument("-o", "--output", type=Path, help="write the corrected model (JSON)")
+    rb.set_defaults(func=cmd_calibrate_robot)
 
     hs = cal.add_parser(
         "handeye-session",

@@ -295,9 +295,22 @@ def ur10e() -> KinematicModel:
     )
 
 
+def ur5() -> KinematicModel:
+    """Universal Robots UR5 (CB series) with UR's published classic DH parameters (mm, rad)."""
+    return KinematicModel(
+        name="ur5",
+        a_mm=np.array([0.0, -425.0, -392.25, 0.0, 0.0, 0.0]),
+        alpha_rad=np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0]),
+        d_mm=np.array([89.159, 0.0, 0.0, 109.15, 94.65, 82.3]),
+        theta_offset_rad=np.zeros(6),
+        q_limits_rad=np.radians(np.tile([-360.0, 360.0], (6, 1))),
+        wrist_frame=3,
+    )
+
+
 def nominal_model(name: str) -> KinematicModel:
-    """The nominal model called ``name`` ("kr15" or "ur10e")."""
-    builders = {"kr15": kr15, "ur10e": ur10e}
+    """The nominal model called ``name`` ("kr15", "ur10e" or "ur5")."""
+    builders = {"kr15": kr15, "ur10e": ur10e, "ur5": ur5}
     if name not in builders:
         raise ValueError(f"unknown robot model {name!r}; choose one of {sorted(builders)}")
     return builders[name]()
