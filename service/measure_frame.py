@@ -15,6 +15,7 @@ says why the flange part is missing (``flange_reason``).
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import deque
 from dataclasses import replace
@@ -77,6 +78,7 @@ class CameraProcessor:
         self._motion: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=600)
         self._offset: TimeOffsetFit | None = None
         self._n_since_offset = 0
+        self._motion_lock = threading.Lock()  # appended by the processing thread, read by /health
         # host monotonic -> wall clock, fixed at start (results carry both)
         self._wall_minus_mono_ns = time.time_ns() - time.monotonic_ns()
 
@@ -167,14 +169,19 @@ class CameraProcessor:
                 "angle_deg": round(dang, 5),
                 "vector_mm": [round(float(v), 4) for v in T_measured[:3, 3] - T_reported[:3, 3]],
             }
-            self._motion.append((t_exposure_ns * 1e-9, T_measured[:3, 3].copy(), T_reported[:3, 3].copy()))
-            self._n_since_offset += 1
+            with self._motion_lock:
+                self._motion.append((t_exposure_ns * 1e-9, T_measured[:3, 3].copy(), T_reported[:3, 3].copy()))
+                self._n_since_offset += 1
 
     def time_offset_report(self) -> dict[str, Any] | None:
         """The residual latency seen in the motion: frame times are late by ``offset_ms``."""
-        if self._n_since_offset >= 50 and len(self._motion) >= 50:
-            self._n_since_offset = 0
-            t, pm, pr = (np.array(x) for x in zip(*self._motion, strict=True))
+        with self._motion_lock:
+            due = self._n_since_offset >= 50 and len(self._motion) >= 50
+            motion = list(self._motion) if due else []
+            if due:
+                self._n_since_offset = 0
+        if due:
+            t, pm, pr = (np.array(x) for x in zip(*motion, strict=True))
             try:
                 self._offset = estimate_time_offset_s(t - t[0], pm, pr)
             except ValueError:

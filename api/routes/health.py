@@ -25,7 +25,7 @@ def get_status(request: Request, worker: WorkerDep, hub: HubDep) -> dict[str, An
     s = request.app.state.settings
     latest = {
         name: {k: r.get(k) for k in ("ok", "reason", "mode", "t_wall", "rms_px", "n_coded", "n_uncoded", "deviation")}
-        for name, r in worker.latest.items()
+        for name, r in list(worker.latest.items())
     }
     return {
         **get_health(worker, hub),

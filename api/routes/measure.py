@@ -95,7 +95,7 @@ async def ws_poses(
     client = hub.add(camera, max_rate_hz, targets)  # subscribe first, then backfill: no result falls between
     try:
         worker = websocket.app.state.worker
-        latest = [r for n, r in worker.latest.items() if camera in (None, n)]
+        latest = [r for n, r in list(worker.latest.items()) if camera in (None, n)]
         for r in latest:
             await websocket.send_json(r if targets else {k: v for k, v in r.items() if k != "targets"})
         while True:
