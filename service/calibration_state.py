@@ -16,11 +16,11 @@ from typing import Any
 import numpy as np
 
 from service import formats
+from service.calibstore import CalibrationError
 from service.core.camera_model import BrownFraser
 from service.core.field import Field
 from service.core.frames import check_T
 from service.core.intersection import Rig
-from service.core.rig import rig_from_dict
 from service.settings import Settings
 
 KINDS = ("camera", "field", "handeye", "rig")
@@ -41,6 +41,7 @@ def validate(kind: str, data: Any) -> Any:
     if kind == "handeye":
         if not isinstance(data, dict):
             raise formats.FormatError("handeye.json: must be an object with T_flange_camera and T_base_field")
+        formats.reject_non_finite(data, "handeye.json")
         try:
             X = check_T(formats.matrix4_from_json(data.get("T_flange_camera"), "T_flange_camera"), "T_flange_camera")
             Z = check_T(formats.matrix4_from_json(data.get("T_base_field"), "T_base_field"), "T_base_field")
@@ -48,10 +49,7 @@ def validate(kind: str, data: Any) -> Any:
             raise formats.FormatError(f"handeye.json: {e}") from None
         return HandEye(X, Z)
     if kind == "rig":
-        try:
-            return rig_from_dict(data)
-        except ValueError as e:
-            raise formats.FormatError(f"rig.json: {e}") from None
+        return formats.rig_from_json(data, "rig.json")
     raise formats.FormatError(f"unknown calibration kind {kind!r}; one of {KINDS}")
 
 
@@ -108,9 +106,16 @@ class CalibrationState:
             self.generation += 1
 
     def update(self, kind: str, data: Any, note: str = "") -> int | None:
-        """Validate, store (versioned, atomic) and use a new calibration; returns its version."""
+        """Validate, store (versioned, atomic) and use a new calibration; returns its version.
+
+        Raises ``formats.FormatError`` for anything the checks or the store refuse (bad values, a
+        note over 1000 characters); nothing is then stored or changed.
+        """
         obj = validate(kind, data)
-        version = self._store.put(kind, data, note=note) if self._store is not None else None
+        try:
+            version = self._store.put(kind, data, note=note) if self._store is not None else None
+        except CalibrationError as e:  # the store's input checks (its disk errors are OSError)
+            raise formats.FormatError(f"{kind}.json: {e}") from None
         self._set(kind, obj, version, "store" if self._store is not None else "memory")
         return version
 

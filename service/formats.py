@@ -2,6 +2,13 @@
 
 Every reader raises :class:`FormatError` with one sentence naming the file and
 what is wrong, so the CLI and the API can show it as it is.
+
+The calibration readers (camera, field, hand-eye, rig) are strict, because an
+upload over the API is stored and then measured with: every number must be
+finite (Python's ``json`` reads ``NaN`` and ``Infinity``, JSON has neither), of
+the right type (a distortion coefficient is one number, a code a whole number)
+and within the physical limits below; beyond them a value is a typo or a unit
+mistake, not a camera. Writers write standard JSON only.
 """
 
 from __future__ import annotations
@@ -17,12 +24,66 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from service.core.camera_model import BrownFraser
+from service.core.camera_model import PARAMETER_NAMES, BrownFraser
 from service.core.field import Field
+from service.core.intersection import Rig
 
 
 class FormatError(ValueError):
     """A file could not be read as what it should be."""
+
+
+MAX_IMAGE_PX = 100_000  # width and height of a camera.json
+MAX_PIXEL_SIZE_MM = 1.0
+MAX_C_MM = 1000.0  # principal distance
+MAX_PRINCIPAL_POINT_MM = 1000.0  # |x0_mm|, |y0_mm|
+MAX_DISTORTION = 1e6  # |K1|, |K2|, |K3|, |P1|, |P2|, |B1|, |B2| (per mm^2, mm^4, ...: generous for any lens)
+MAX_COORDINATE_MM = 1e6  # target coordinates and translations of a transform: a kilometre
+MAX_DIAMETER_MM = 1000.0
+MAX_CODE = 1_000_000
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+def _is_finite_number(v: Any) -> bool:
+    # math.isfinite would raise OverflowError on an int beyond a float (JSON may carry 1 with 400 zeros)
+    return _is_number(v) and (isinstance(v, int) or math.isfinite(v))
+
+
+def _interval(lo: float, hi: float, lo_open: bool) -> str:
+    return f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
+
+
+def _number(source: str, name: str, v: Any, lo: float, hi: float, unit: str = "", *, lo_open: bool = False) -> float:
+    """``v`` as a float, or a ``FormatError`` saying which range ``name`` must lie in."""
+    ok = _is_finite_number(v) and (lo < v if lo_open else lo <= v) and v <= hi
+    if not ok:
+        unit = f" {unit}" if unit else ""
+        raise FormatError(f"{source}: {name} must be a number in {_interval(lo, hi, lo_open)}{unit}, not {v!r}")
+    return float(v)
+
+
+def _whole(source: str, name: str, v: Any, lo: int, hi: int) -> int:
+    """``v`` as an int (a float with no fraction, as other tools write, passes), or a ``FormatError``."""
+    ok = _is_finite_number(v) and (isinstance(v, int) or v.is_integer()) and lo <= v <= hi
+    if not ok:
+        raise FormatError(f"{source}: {name} must be a whole number in [{lo}, {hi}], not {v!r}")
+    return int(v)
+
+
+def reject_non_finite(data: Any, source: str) -> None:
+    """Raise ``FormatError`` naming a NaN or infinity anywhere in parsed JSON ``data`` (JSON has neither)."""
+    stack: list[tuple[str, Any]] = [("", data)]
+    while stack:  # not recursive: the nesting is the sender's choice
+        where, v = stack.pop()
+        if isinstance(v, float) and not math.isfinite(v):
+            raise FormatError(f"{source}: {where or 'the value'} is {v!r}; numbers must be finite")
+        if isinstance(v, dict):
+            stack.extend((f"{where}.{k}" if where else str(k), x) for k, x in v.items())
+        elif isinstance(v, list | tuple):
+            stack.extend((f"{where}[{i}]", x) for i, x in enumerate(v))
 
 
 def _read_text(path: str | os.PathLike[str]) -> str:
@@ -48,17 +109,23 @@ def read_json(path: str | os.PathLike[str]) -> Any:
 
 
 def write_json_atomic(path: str | os.PathLike[str], data: Any) -> None:
-    """Write JSON through a temporary file, fsync and rename, so a crash never leaves half a file."""
+    """Write JSON through a temporary file, fsync and rename, so a crash never leaves half a file.
+
+    Raises ``FormatError`` (and leaves ``path`` as it was) when ``data`` holds a NaN or an infinity.
+    """
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", dir=p.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=2)
+            json.dump(data, f, indent=2, allow_nan=False)  # NaN and Infinity are not JSON
             f.write("\n")
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, p)
+    except ValueError as e:
+        Path(tmp).unlink(missing_ok=True)
+        raise FormatError(f"{p}: not written, the data is not standard JSON ({e})") from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -67,7 +134,39 @@ def write_json_atomic(path: str | os.PathLike[str], data: Any) -> None:
 # -- camera.json -------------------------------------------------------------
 
 
+def _check_camera(data: Any, source: str) -> None:
+    """Types and ranges of the camera.json keys that are present (from_dict reports missing ones)."""
+    if not isinstance(data, dict):
+        raise FormatError(f"{source}: a camera must be a JSON object")
+    reject_non_finite(data, source)
+    for name in ("width", "height"):
+        if name in data:
+            _whole(source, name, data[name], 1, MAX_IMAGE_PX)
+    if "pixel_size_mm" in data:
+        ps = data["pixel_size_mm"]
+        if isinstance(ps, list | tuple) and len(ps) != 2:
+            raise FormatError(f"{source}: pixel_size_mm must be a number or [x, y] in mm, not {ps!r}")
+        for v in ps if isinstance(ps, list | tuple) else [ps]:
+            _number(source, "pixel_size_mm", v, 0.0, MAX_PIXEL_SIZE_MM, "mm", lo_open=True)
+    if "c_mm" in data:
+        _number(source, "c_mm", data["c_mm"], 0.0, MAX_C_MM, "mm", lo_open=True)
+    for name in ("x0_mm", "y0_mm"):
+        if name in data:
+            _number(source, name, data[name], -MAX_PRINCIPAL_POINT_MM, MAX_PRINCIPAL_POINT_MM, "mm")
+    for name in PARAMETER_NAMES[3:]:
+        if name in data:
+            _number(source, name, data[name], -MAX_DISTORTION, MAX_DISTORTION)
+    sigma = data.get("sigma")
+    if sigma is not None:
+        if not isinstance(sigma, dict):
+            raise FormatError(f"{source}: sigma must be an object of standard deviations, not {sigma!r}")
+        for name, v in sigma.items():
+            if not (_is_number(v) and v >= 0):
+                raise FormatError(f"{source}: sigma.{name} must be a non-negative number, not {v!r}")
+
+
 def camera_from_json(data: Any, source: str = "camera") -> BrownFraser:
+    _check_camera(data, source)
     try:
         return BrownFraser.from_dict(data)
     except ValueError as e:
@@ -94,20 +193,24 @@ def field_from_json(data: Any, source: str = "field") -> Field:
     xyz: list[list[float]] = []
     codes: list[int] = []
     diam: list[float] = []
+    reject_non_finite(data, source)
     for k, t in enumerate(data["targets"]):
         if not isinstance(t, dict) or "id" not in t or "xyz" not in t:
             raise FormatError(f"{source}: target #{k} needs an 'id' and an 'xyz'")
-        try:
-            p = [float(v) for v in t["xyz"]]
-            if len(p) != 3 or not all(math.isfinite(v) for v in p):
-                raise ValueError
-        except (TypeError, ValueError):
-            raise FormatError(f"{source}: target {t['id']!r} has a malformed 'xyz' (want 3 finite numbers)") from None
-        ids.append(str(t["id"]))
-        xyz.append(p)
+        tid = t["id"]
+        if isinstance(tid, bool) or not isinstance(tid, str | int) or tid == "":
+            raise FormatError(f"{source}: target #{k} has a malformed 'id' (want a non-empty string), not {tid!r}")
+        where = f"target {tid!r}"
+        p = t["xyz"]
+        if not isinstance(p, list | tuple) or len(p) != 3 or not all(_is_number(v) for v in p):
+            raise FormatError(f"{source}: {where} has a malformed 'xyz' (want 3 finite numbers, mm), not {p!r}")
+        ids.append(str(tid))
+        xyz.append([_number(source, f"{where} xyz", v, -MAX_COORDINATE_MM, MAX_COORDINATE_MM, "mm") for v in p])
         code = t.get("code")
-        codes.append(int(code) if code is not None else -1)
-        diam.append(float(t.get("diameter_mm", math.nan)))
+        codes.append(-1 if code is None else _whole(source, f"{where} code", code, 0, MAX_CODE))
+        d = t.get("diameter_mm")
+        diam.append(math.nan if d is None else
+                    _number(source, f"{where} diameter_mm", d, 0.0, MAX_DIAMETER_MM, "mm", lo_open=True))
     try:
         return Field(
             name=str(data.get("name", Path(source).stem)),
@@ -147,10 +250,14 @@ def field_from_csv(text: str, source: str = "field.csv") -> Field:
                 continue  # header
             raise FormatError(f"{source}: row {row!r} is not 'id,x,y,z[,code,diameter_mm]'") from None
         t: dict[str, Any] = {"id": cells[0], "xyz": xyz}
-        if len(cells) > 4 and cells[4] not in ("", "-"):
-            t["code"] = int(cells[4])
-        if len(cells) > 5 and cells[5] != "":
-            t["diameter_mm"] = float(cells[5])
+        try:
+            if len(cells) > 4 and cells[4] not in ("", "-"):
+                t["code"] = int(cells[4])
+            if len(cells) > 5 and cells[5] != "":
+                t["diameter_mm"] = float(cells[5])
+        except ValueError:
+            raise FormatError(f"{source}: row {row!r} has a code that is not a whole number or a diameter "
+                              "that is not a number") from None
         targets.append(t)
     return field_from_json({"name": Path(source).stem, "targets": targets}, source)
 
@@ -296,13 +403,38 @@ def image_observations_to_json(images: list[ImageObservations]) -> dict[str, Any
 
 
 def matrix4_from_json(value: Any, what: str) -> np.ndarray:
+    """A 4x4 transform (mm) from nested lists of numbers; translations within a kilometre."""
+    if not isinstance(value, np.ndarray):
+        rows = value if isinstance(value, list | tuple) else []
+        if len(rows) != 4 or not all(isinstance(r, list | tuple) and len(r) == 4 for r in rows):
+            raise FormatError(f"{what} must be a 4x4 matrix (4 lists of 4 numbers)")
+        if not all(_is_number(v) for r in rows for v in r):
+            raise FormatError(f"{what} must hold numbers only, not strings, booleans or nulls")
     try:
         T = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise FormatError(f"{what} is not a 4x4 matrix of numbers") from None
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise FormatError(f"{what} must be a 4x4 matrix of finite numbers, got shape {T.shape}")
+    if np.max(np.abs(T)) > MAX_COORDINATE_MM:
+        raise FormatError(f"{what} has a value beyond ±{MAX_COORDINATE_MM:g} mm")
     return T
+
+
+def rig_from_json(data: Any, source: str = "rig") -> Rig:
+    """A camera rig (``rig.json``: ``cameras`` and their ``T_master_camera``), checked as strictly as a camera."""
+    if not isinstance(data, dict) or data.get("model", "rig") != "rig":
+        raise FormatError(f"{source}: a rig must be a JSON object with model 'rig'")
+    reject_non_finite(data, source)
+    cameras, T = data.get("cameras"), data.get("T_master_camera")
+    if not isinstance(cameras, list) or not isinstance(T, list) or len(cameras) != len(T):
+        raise FormatError(f"{source}: a rig needs a 'cameras' list and a 'T_master_camera' list of the same length")
+    cams = [camera_from_json(c, f"{source}: camera {k}") for k, c in enumerate(cameras)]
+    Ts = [matrix4_from_json(t, f"{source}: T_master_camera[{k}]") for k, t in enumerate(T)]
+    try:
+        return Rig(tuple(cams), np.array(Ts).reshape(-1, 4, 4))
+    except ValueError as e:
+        raise FormatError(f"{source}: {e}") from None
 
 
 def read_handeye_samples(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:

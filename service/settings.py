@@ -7,22 +7,36 @@ runs the simulated cell, so ``posecell serve`` works out of the box.
 Environment overrides use ``__`` between levels, e.g.
 ``POSECELL_SERVER__PORT=8080`` or ``POSECELL_ROBOT__DRIVER=ur``. The settings
 object is built once, in ``load_settings``, and passed down explicitly.
+
+These models are the one schema of every knob: the file, the environment, the
+runtime file of ``PUT /config`` and that route's patch models (derived from
+them) all obey the same limits. Every number must be finite (TOML's ``inf`` and
+``nan``, JSON's ``Infinity`` and ``NaN`` are refused) and lie in a physical
+range, stated with its unit in the field's description so that OpenAPI shows it.
 """
 
 from __future__ import annotations
 
+import json
+import logging
+import os
 import tomllib
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal, Protocol
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from drivers.base import CameraSettings, StrobeSettings, TriggerMode
+from service.formats import write_json_atomic
+
+log = logging.getLogger(__name__)
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid")  # a misspelt key is an error, not a silent default
+    # a misspelt key is an error, not a silent default; no number is NaN or infinite
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class ServerSettings(_Section):
@@ -31,7 +45,30 @@ class ServerSettings(_Section):
     # bearer token for state-changing requests; empty: one is generated at start and written to
     # <state_dir>/api-token (mode 0600), so nothing is ever open by default
     token: str = ""
-    cors_origins: list[str] = []
+    cors_origins: list[str] = []  # browser origins allowed to call the API and to open /ws/poses
+    # Host header names the service answers to (against DNS rebinding); IP addresses and the bound host
+    # are always accepted, since a rebinding page reaches the service only under a DNS name; "*": any
+    allowed_hosts: list[str] = ["localhost"]
+    # largest request body (413 beyond): a field.json of 10 000 targets is 1.7-3.1 MB, a camera
+    # self-calibration of 50 images x 500 points 1.5-3.5 MB (compact to indented JSON)
+    max_body_bytes: int = Field(16 * 1024 * 1024, ge=1024)
+    max_header_bytes: int = Field(16 * 1024, ge=1024)  # request line + headers (431 beyond)
+    # connection timeouts: from connecting (or a request's first byte) to its last header byte; the
+    # longest pause inside a request body; an idle keep-alive connection between requests
+    timeout_header_s: float = Field(10.0, gt=0)
+    timeout_body_s: float = Field(30.0, gt=0)
+    timeout_keep_alive_s: float = Field(5.0, gt=0)
+    timeout_graceful_shutdown_s: float = Field(10.0, gt=0)  # on stop, open requests get this long
+    # open connections (HTTP and WebSocket) beyond this get 503 at once and are closed; keep it well
+    # below LimitNOFILE of the systemd unit (8192)
+    limit_concurrency: int = Field(2048, ge=1)
+    backlog: int = Field(2048, ge=1)  # connections the kernel queues before the service accepts them
+    ws_ping_interval_s: float = Field(20.0, gt=0)  # WebSocket keep-alive ping; no pong within the
+    ws_ping_timeout_s: float = Field(20.0, gt=0)  # timeout: the client is dropped
+    ws_max_message_bytes: int = Field(64 * 1024, ge=1024)  # largest message a WebSocket client may send
+    # a /ws/poses client whose socket has taken nothing for this long (it stopped reading and the
+    # buffers are full) is disconnected; the ping above finds one that stopped earlier
+    ws_stall_timeout_s: float = Field(10.0, gt=0, le=3600)
 
 
 class StrobeConfig(_Section):
@@ -39,25 +76,34 @@ class StrobeConfig(_Section):
     line: str = "Line1"
     source: str = "ExposureActive"
     inverted: bool = False
-    delay_us: float = Field(0.0, ge=0)
-    duration_us: float | None = Field(None, gt=0)
+    delay_us: float = Field(0.0, ge=0, le=1e6, description="timer sources only: delay, µs, [0, 1 s]")
+    duration_us: float | None = Field(
+        None, gt=0, le=1e6, description="timer sources only: pulse length, µs, (0, 1 s]")
+
+
+_ROI_MAX_PX = 65_535
+_RoiOffsetPx = Annotated[int, Field(ge=0, le=_ROI_MAX_PX)]
+_RoiSizePx = Annotated[int, Field(gt=0, le=_ROI_MAX_PX)]
 
 
 class CameraConfig(_Section):
     name: str = "cam0"
     driver: Literal["sim", "aravis", "v4l2"] = "sim"
     options: dict[str, Any] = {}  # driver constructor options (aravis: device, packet_size, ...)
-    exposure_us: float | None = Field(2000.0, gt=0)
-    gain_db: float | None = None
-    frame_rate_hz: float | None = Field(20.0, gt=0)
+    exposure_us: float | None = Field(
+        2000.0, gt=0, le=10_000_000, description="exposure time, µs, (0, 10 s]; none: leave the camera's")
+    gain_db: float | None = Field(None, ge=-20, le=60, description="gain, dB, [-20, 60]; none: leave the camera's")
+    frame_rate_hz: float | None = Field(
+        20.0, ge=0.1, le=10_000, description="free-run frame rate, Hz, [0.1, 10 000]; none: leave the camera's")
     trigger: TriggerMode = TriggerMode.FREE_RUN
     trigger_line: str = "Line0"
     pixel_format: Literal["Mono8", "Mono12", "Mono16"] | None = None
-    roi: tuple[int, int, int, int] | None = None
+    roi: tuple[_RoiOffsetPx, _RoiOffsetPx, _RoiSizePx, _RoiSizePx] | None = Field(
+        None, description="x, y, width, height, px: offsets [0, 65 535], sizes [1, 65 535]; none: full sensor")
     strobe: StrobeConfig | None = StrobeConfig()
     # smallest delay from exposure end to the frame's arrival (readout + transfer): the part of
     # the latency the clock mapping cannot see; the worker reports what remains
-    transport_latency_s: float = Field(0.004, ge=0)
+    transport_latency_s: float = Field(0.004, ge=0, le=1, description="readout + transfer delay, s, [0, 1]")
 
     def camera_settings(self) -> CameraSettings:
         strobe = None if self.strobe is None else StrobeSettings(**self.strobe.model_dump())
@@ -76,21 +122,24 @@ class CameraConfig(_Section):
 class RobotConfig(_Section):
     driver: Literal["sim", "ur", "none"] = "sim"
     options: dict[str, Any] = {}  # ur: host, frequency_hz, T_flange_tcp
-    transport_latency_s: float = Field(0.0, ge=0)
+    transport_latency_s: float = Field(0.0, ge=0, le=1, description="robot sample transport delay, s, [0, 1]")
 
 
 class ProcessingConfig(_Section):
     roi_tracking: bool = True
     # a rig's cameras are combined when their exposures lie this close (a hardware-triggered rig: ~0)
-    rig_sync_tolerance_s: float = Field(0.005, gt=0)
+    rig_sync_tolerance_s: float = Field(0.005, gt=0, le=1, description="rig exposure pairing window, s, (0, 1]")
     code_family: Literal["posecell12", "aicon14"] = "posecell12"
-    min_targets: int = Field(6, ge=4)
-    min_coded: int = Field(4, ge=3)
-    sigma_px: float | None = Field(None, gt=0)
-    max_sigma0_px: float = Field(0.5, gt=0)
+    min_targets: int = Field(6, ge=4, le=100_000, description="targets needed for a pose, [4, 100 000]")
+    min_coded: int = Field(4, ge=3, le=100_000, description="coded targets needed for a pose, [3, 100 000]")
+    sigma_px: float | None = Field(
+        None, gt=0, le=10, description="a-priori image precision, px, (0, 10]; none: from the detector")
+    max_sigma0_px: float = Field(0.5, gt=0, le=100, description="largest accepted sigma0 of a pose, px, (0, 100]")
     correct_eccentricity: bool = True
-    min_contrast_dn: float | None = Field(None, gt=0)
-    max_area_px: int | None = Field(None, gt=0)
+    min_contrast_dn: float | None = Field(None, gt=0, le=65_535, description=(
+        "detection threshold above the local background, DN, (0, 65 535]; none: the detector's"))
+    max_area_px: int | None = Field(
+        None, gt=0, le=100_000_000, description="largest target image, px, (0, 10^8]; none: the detector's")
 
 
 class CalibrationConfig(_Section):
@@ -104,16 +153,17 @@ class CalibrationConfig(_Section):
 
 class StorageConfig(_Section):
     database: str = "measurements.sqlite"  # relative to state_dir
-    retention_days: float | None = Field(30.0, gt=0)
+    retention_days: float | None = Field(30.0, gt=0, le=36_500, description=(
+        "measurements and events older than this are deleted, days, (0, 36 500]; none: kept"))
     # streaming results are many; keep one every N seconds (0: all), triggered ones always
-    stream_every_s: float = Field(1.0, ge=0)
+    stream_every_s: float = Field(1.0, ge=0, le=86_400, description="stored streaming interval, s, [0, 86 400]")
 
 
 class SimConfig(_Section):
     seed: int = 0
     robot: Literal["kr15", "ur10e"] = "kr15"
     program: Literal["circle", "random", "hold"] = "circle"
-    error_scale: float = Field(1.0, ge=0)
+    error_scale: float = Field(1.0, ge=0, le=100, description="scale of the simulated robot's errors, [0, 100]")
     # "direct": in-process simulated drivers; "standins": the real Aravis and RTDE drivers
     # talking to the loopback stand-ins (needs Aravis and ur-rtde)
     transport: Literal["direct", "standins"] = "direct"
@@ -190,10 +240,14 @@ def load_settings(path: Path | None = None, **overrides: Any) -> Settings:
         return Settings(**data)
     except ValidationError as e:
         where = f" in {path}" if path else ""
-        problems = "; ".join(
-            f"{'.'.join(str(p) for p in err['loc'])}: {err['msg']}" for err in e.errors(include_url=False)
-        )
-        raise SettingsError(f"bad configuration{where}: {problems}") from None
+        raise SettingsError(f"bad configuration{where}: {validation_problems(e)}") from None
+
+
+def validation_problems(e: ValidationError, prefix: str = "") -> str:
+    """Every bad key of a pydantic error on one line: ``cameras.0.exposure_us: Input should be ...``."""
+    return "; ".join(
+        f"{prefix}{'.'.join(str(p) for p in err['loc'])}: {err['msg']}" for err in e.errors(include_url=False)
+    )
 
 
 RUNTIME_FILE = "runtime-config.json"  # in state_dir: what PUT /config changed, re-applied at start
@@ -207,15 +261,74 @@ def runtime_sections(settings: Settings) -> dict[str, Any]:
     }
 
 
-def with_runtime_overrides(settings: Settings, overrides: dict[str, Any]) -> Settings:
-    """Settings with the saved runtime changes applied (cameras matched by name; unknown names ignored)."""
-    by_name = {c.get("name"): c for c in overrides.get("cameras", []) if isinstance(c, dict)}
-    cameras = [
-        CameraConfig.model_validate(
-            {**c.model_dump(), **by_name.get(c.name, {}), "driver": c.driver, "options": c.options}
-        )
-        for c in settings.cameras
-    ]
-    saved = overrides.get("processing", {})
-    processing = ProcessingConfig.model_validate({**settings.processing.model_dump(), **saved})
+def with_runtime_overrides(settings: Settings, overrides: Any) -> Settings:
+    """Settings with the saved runtime changes applied (cameras matched by name; unknown names ignored).
+
+    Raises ``SettingsError`` naming the key when ``overrides`` does not have the shape of
+    :func:`runtime_sections` or a value breaks a limit of the settings models.
+    """
+    if not isinstance(overrides, dict) or not set(overrides) <= {"cameras", "processing"}:
+        raise SettingsError("runtime overrides must be an object with only 'cameras' and 'processing'")
+    saved_cameras, saved = overrides.get("cameras", []), overrides.get("processing", {})
+    if not isinstance(saved_cameras, list) or not all(isinstance(c, dict) for c in saved_cameras):
+        raise SettingsError("runtime overrides: 'cameras' must be a list of objects")
+    if not isinstance(saved, dict):
+        raise SettingsError("runtime overrides: 'processing' must be an object")
+    by_name = {c.get("name"): c for c in saved_cameras}
+    cameras = []
+    for c in settings.cameras:
+        try:
+            cameras.append(CameraConfig.model_validate(
+                {**c.model_dump(), **by_name.get(c.name, {}), "driver": c.driver, "options": c.options}))
+        except ValidationError as e:
+            raise SettingsError(f"bad runtime overrides: {validation_problems(e, f'cameras.{c.name}.')}") from None
+    try:
+        processing = ProcessingConfig.model_validate({**settings.processing.model_dump(), **saved})
+    except ValidationError as e:
+        raise SettingsError(f"bad runtime overrides: {validation_problems(e, 'processing.')}") from None
     return settings.model_copy(update={"cameras": cameras, "processing": processing})
+
+
+class EventSink(Protocol):
+    """Where a start-up problem is recorded (``MeasurementStore``)."""
+
+    def add_event(self, kind: str, message: str, level: str = ...) -> None: ...
+
+
+def apply_runtime_file(settings: Settings, events: EventSink | None = None) -> Settings:
+    """Settings with ``<state_dir>/runtime-config.json`` (what ``PUT /config`` saved) applied.
+
+    A file that cannot be read, is not JSON or breaks a limit is never applied, even in part:
+    it is renamed aside to ``runtime-config.json.rejected-<UTC time>`` (kept for the operator),
+    the sentence why is logged and recorded as a ``runtime_config_rejected`` warning event, and
+    ``settings`` (the configuration file's values) are returned unchanged.
+    """
+    path = settings.resolved_state_dir() / RUNTIME_FILE
+    try:
+        return with_runtime_overrides(settings, json.loads(path.read_text(encoding="utf-8")))
+    except FileNotFoundError:
+        return settings
+    except UnicodeDecodeError:
+        problem = "it is not UTF-8 text"
+    except json.JSONDecodeError as e:
+        problem = f"it is not JSON (line {e.lineno} column {e.colno}: {e.msg})"
+    except SettingsError as e:
+        problem = str(e)
+    except OSError as e:
+        problem = f"it cannot be read ({e.strerror})"
+    aside = path.with_name(f"{path.name}.rejected-{datetime.now(UTC):%Y%m%dT%H%M%S.%fZ}")
+    try:
+        os.replace(path, aside)
+        where = f"set aside as {aside.name}"
+    except OSError as e:
+        where = f"left in place ({e.strerror})"
+    message = f"{path} was not applied and is {where}: {problem}; the configuration file's values apply"
+    log.warning(message)
+    if events is not None:
+        events.add_event("runtime_config_rejected", message, level="warning")
+    return settings
+
+
+def save_runtime_file(settings: Settings) -> None:
+    """Write what ``PUT /config`` may change to ``<state_dir>/runtime-config.json`` (standard JSON, atomic)."""
+    write_json_atomic(settings.resolved_state_dir() / RUNTIME_FILE, runtime_sections(settings))

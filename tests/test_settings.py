@@ -2,12 +2,21 @@
 
 from __future__ import annotations
 
+import json
 import tomllib
 from pathlib import Path
 
 import pytest
 
-from service.settings import Settings, SettingsError, load_settings, with_runtime_overrides
+from service.settings import (
+    RUNTIME_FILE,
+    Settings,
+    SettingsError,
+    apply_runtime_file,
+    load_settings,
+    save_runtime_file,
+    with_runtime_overrides,
+)
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "deploy" / "posecell.example.toml"
 
@@ -68,3 +77,93 @@ def test_runtime_overrides_change_camera_and_processing_but_never_the_driver():
 def test_example_toml_is_valid_toml_with_one_camera():
     data = tomllib.loads(EXAMPLE.read_text())
     assert len(data["cameras"]) == 1
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ("[[cameras]]\nexposure_us = inf\n", "cameras.0.exposure_us"),  # TOML has inf and nan literals
+        ("[[cameras]]\ngain_db = nan\n", "cameras.0.gain_db"),
+        ("[[cameras]]\nexposure_us = 1e300\n", "cameras.0.exposure_us"),
+        ("[[cameras]]\nframe_rate_hz = 1e-9\n", "cameras.0.frame_rate_hz"),
+        ("[[cameras]]\nroi = [0, 0, 0, 64]\n", "cameras.0.roi"),
+        ("[[cameras]]\n[cameras.strobe]\ndelay_us = 1e7\n", "cameras.0.strobe.delay_us"),
+        ("[processing]\nsigma_px = 11.0\n", "processing.sigma_px"),
+        ("[processing]\nmax_area_px = 1000000000000\n", "processing.max_area_px"),
+        ("[storage]\nretention_days = 1e9\n", "storage.retention_days"),
+        ("[robot]\ntransport_latency_s = -inf\n", "robot.transport_latency_s"),
+    ],
+)
+def test_non_finite_and_out_of_range_numbers_in_the_file_are_refused(tmp_path, text, needle):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(text)
+    with pytest.raises(SettingsError, match=needle.replace(".", r"\.")):
+        load_settings(cfg)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "needle"),
+    [
+        ({"cameras": [{"name": "cam0", "exposure_us": float("inf")}]}, "cameras.cam0.exposure_us"),
+        ({"processing": {"max_sigma0_px": float("nan")}}, "processing.max_sigma0_px"),
+        ({"cameras": {"cam0": {}}}, "list of objects"),
+        ({"processing": [1]}, "must be an object"),
+        ({"cameras": [], "server": {"port": 1}}, "only 'cameras' and 'processing'"),
+        ([1, 2], "must be an object"),
+    ],
+)
+def test_runtime_overrides_that_break_a_limit_or_the_shape_are_refused(overrides, needle):
+    with pytest.raises(SettingsError, match=needle):
+        with_runtime_overrides(Settings(), overrides)
+
+
+class Events:
+    def __init__(self):
+        self.events = []
+
+    def add_event(self, kind, message, level="info"):
+        self.events.append((kind, level, message))
+
+
+def test_saved_runtime_file_is_standard_json_and_applied_at_the_next_start(tmp_path):
+    s = Settings(state_dir=tmp_path)
+    s.cameras[0].exposure_us, s.processing.min_targets = 900.0, 9
+    save_runtime_file(s)
+    text = (tmp_path / RUNTIME_FILE).read_text()
+    json.loads(text, parse_constant=lambda c: pytest.fail(f"non-standard JSON {c}"))
+    events = Events()
+    s2 = apply_runtime_file(Settings(state_dir=tmp_path), events)
+    assert s2.cameras[0].exposure_us == 900.0 and s2.processing.min_targets == 9
+    assert events.events == [] and (tmp_path / RUNTIME_FILE).read_text() == text
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ('{"cameras": [{"name": "cam0", "exposure_us": Infinity}]}', "cameras.cam0.exposure_us"),
+        ('{"processing": {"min_targets": 2}}', "processing.min_targets"),
+        ('{"cameras": [{"name": "cam0"', "not JSON"),
+        ("[1, 2]", "must be an object"),
+        (b"\xff\xfe{}", "not UTF-8"),
+    ],
+)
+def test_a_runtime_file_that_does_not_validate_is_set_aside_and_not_applied(tmp_path, text, needle):
+    path = tmp_path / RUNTIME_FILE
+    original = text if isinstance(text, bytes) else text.encode()
+    path.write_bytes(original)
+    events = Events()
+    s = apply_runtime_file(Settings(state_dir=tmp_path), events)
+    assert s.model_dump() == Settings(state_dir=tmp_path).model_dump()
+    assert not path.exists()
+    (aside,) = tmp_path.glob(f"{RUNTIME_FILE}.rejected-*")
+    assert aside.read_bytes() == original  # kept for the operator
+    ((kind, level, message),) = events.events
+    assert kind == "runtime_config_rejected" and level == "warning"
+    assert needle in message and aside.name in message
+
+
+def test_no_runtime_file_leaves_the_settings_as_they_are(tmp_path):
+    events = Events()
+    assert apply_runtime_file(Settings(state_dir=tmp_path), events).model_dump() == Settings(
+        state_dir=tmp_path).model_dump()
+    assert events.events == []

@@ -1,11 +1,16 @@
-"""Calibration files: download, upload (validated, versioned, atomic), history and rollback."""
+"""Calibration files: download, upload (validated, versioned, atomic), history and rollback.
+
+An upload is checked by ``service.formats`` (finite numbers of the right type within physical
+limits) before anything is stored; a refused one is a 422 and leaves the store and the worker as
+they were.
+"""
 
 from __future__ import annotations
 
 from enum import StrEnum
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Request
+from fastapi import APIRouter, Body, Query, Request
 
 from api.deps import WorkerDep
 from api.errors import ApiError
@@ -39,7 +44,8 @@ def get_calibration(kind: Kind, worker: WorkerDep) -> Any:
 @router.put("/{kind}", dependencies=[Authorized],
             summary="Upload a calibration; the worker uses it from the next frame")
 def put_calibration(
-    kind: Kind, worker: WorkerDep, data: Annotated[dict[str, Any], Body()], note: str = ""
+    kind: Kind, worker: WorkerDep, data: Annotated[dict[str, Any], Body()],
+    note: Annotated[str, Query(max_length=1000, description="kept with the version, at most 1000 characters")] = "",
 ) -> dict[str, Any]:
     try:
         version = worker.calibration.update(kind, data, note=note or "uploaded over the API")
@@ -62,6 +68,9 @@ def post_rollback(kind: Kind, version: int, request: Request, worker: WorkerDep)
         data = store.get(kind, version)
     except Exception as e:  # the store's "missing" error carries the sentence
         raise ApiError("not_found", str(e)) from None
-    new_version = worker.calibration.update(kind, data, note=f"rollback to version {version}")
+    try:
+        new_version = worker.calibration.update(kind, data, note=f"rollback to version {version}")
+    except FormatError as e:  # stored before today's checks existed
+        raise ApiError(Reason.bad_input, f"version {version} cannot be used: {e}") from None
     worker.event("info", "calibration_changed", f"{kind} calibration rolled back to version {version}")
     return {"ok": True, "kind": str(kind), "version": new_version}

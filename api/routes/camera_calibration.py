@@ -13,7 +13,7 @@ the next frame.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter
@@ -26,14 +26,19 @@ from service.calibrate_camera import camera_json
 from service.core.bundle import ImagePoints, calibrate_camera
 from service.core.camera_model import PARAMETER_NAMES
 from service.core.results import Reason, SolveError
+from service.formats import MAX_IMAGE_PX, FormatError
 
 router = APIRouter(prefix="/calibration/camera", tags=["camera calibration"])
+
+
+# a pixel coordinate lies within an image of at most formats.MAX_IMAGE_PX a side
+PixelCoordinate = Annotated[float, Field(ge=-MAX_IMAGE_PX, le=MAX_IMAGE_PX, allow_inf_nan=False)]
 
 
 class Point(BaseModel):
     model_config = ConfigDict(extra="forbid")
     id: str
-    uv: tuple[float, float]
+    uv: tuple[PixelCoordinate, PixelCoordinate] = Field(description="u, v in px (DESIGN section 2), finite")
 
 
 class Image(BaseModel):
@@ -76,7 +81,10 @@ def solve(worker: WorkerDep, req: SolveRequest | None = None, apply: bool = Fals
     payload = camera_json(result)
     version = None
     if apply:
-        version = cal.update("camera", payload, note=f"self-calibration over the API, {len(images)} images")
+        try:
+            version = cal.update("camera", payload, note=f"self-calibration over the API, {len(images)} images")
+        except FormatError as e:  # a result outside the physical limits is not stored
+            raise ApiError(Reason.bad_input, f"the self-calibration is not applied: {e}") from None
         worker.event("info", "calibration_changed", f"camera version {version} from a self-calibration")
     return {"ok": True, "applied_version": version, "sigma0_px": result.sigma0_px,
             "warnings": list(result.warnings), "camera": payload}

@@ -1,70 +1,68 @@
 """``GET/PUT /config``: camera exposure, gain, frame rate, trigger, strobe and processing options at run time.
 
-Changes are validated with the same models as the configuration file, applied
-by each camera's owner thread (a feature the camera lacks is a 409 with the
-driver's sentence, and nothing is changed), and saved in the state directory so
-that they survive a restart.
+Changes are validated with the same models as the configuration file (the patch
+models below are derived from them, so the limits and their units are written
+once, in ``service/settings.py``, and OpenAPI shows them), applied by each
+camera's owner thread (a feature the camera lacks is a 409 with the driver's
+sentence, and nothing is changed), and saved in the state directory so that
+they survive a restart. A refused request changes nothing: not the worker, not
+the saved file.
 """
 
 from __future__ import annotations
 
-import json
-from typing import Any
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Request
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model
 
 from api.deps import WorkerDep
 from api.errors import ApiError
 from api.security import Authorized
-from drivers.base import TriggerMode
 from service.core.results import Reason
-from service.formats import write_json_atomic
-from service.settings import RUNTIME_FILE, CameraConfig, ProcessingConfig, runtime_sections
+from service.settings import (
+    CameraConfig,
+    ProcessingConfig,
+    StrobeConfig,
+    runtime_sections,
+    save_runtime_file,
+    validation_problems,
+)
 
 router = APIRouter(tags=["configuration"])
 
 
 class _Patch(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
-class StrobePatch(_Patch):
-    enabled: bool | None = None
-    line: str | None = None
-    source: str | None = None
-    inverted: bool | None = None
-    delay_us: float | None = Field(None, ge=0)
-    duration_us: float | None = Field(None, gt=0)
+def _patch_of(
+    model: type[BaseModel], name: str, *, exclude: frozenset[str] = frozenset(),
+    replace: dict[str, Any] | None = None,
+) -> type[_Patch]:
+    """``model`` with every field optional (``None``: unchanged), keeping its limits and descriptions."""
+    fields: dict[str, Any] = {}
+    for key, info in model.model_fields.items():
+        if key in exclude:
+            continue
+        annotation = (replace or {}).get(key, info.annotation) | None
+        if info.metadata:  # the limits: gt, le, ...
+            annotation = Annotated[annotation, *info.metadata]
+        fields[key] = (annotation, Field(None, description=info.description))
+    return create_model(name, __base__=_Patch, __module__=__name__, **fields)
 
 
-class CameraPatch(_Patch):
-    exposure_us: float | None = Field(None, gt=0)
-    gain_db: float | None = None
-    frame_rate_hz: float | None = Field(None, gt=0)
-    trigger: TriggerMode | None = None
-    trigger_line: str | None = None
-    pixel_format: str | None = None
-    roi: tuple[int, int, int, int] | None = None
-    strobe: StrobePatch | None = None
-    transport_latency_s: float | None = Field(None, ge=0)
-
-
-class ProcessingPatch(_Patch):
-    roi_tracking: bool | None = None
-    code_family: str | None = None
-    min_targets: int | None = None
-    min_coded: int | None = None
-    sigma_px: float | None = None
-    max_sigma0_px: float | None = None
-    correct_eccentricity: bool | None = None
-    min_contrast_dn: float | None = None
-    max_area_px: int | None = None
+StrobePatch = _patch_of(StrobeConfig, "StrobePatch")
+# name and driver pick the device: the configuration file's business, not a run-time change
+CameraPatch = _patch_of(CameraConfig, "CameraPatch", exclude=frozenset({"name", "driver", "options"}),
+                        replace={"strobe": StrobePatch})
+# the rig's pairing window is set when the worker starts
+ProcessingPatch = _patch_of(ProcessingConfig, "ProcessingPatch", exclude=frozenset({"rig_sync_tolerance_s"}))
 
 
 class ConfigPatch(_Patch):
-    cameras: dict[str, CameraPatch] = {}
-    processing: ProcessingPatch | None = None
+    cameras: dict[str, CameraPatch] = {}  # type: ignore[valid-type]
+    processing: ProcessingPatch | None = None  # type: ignore[valid-type]
 
 
 @router.get("/config", summary="The run-time configurable part of the configuration")
@@ -92,8 +90,7 @@ def put_config(request: Request, worker: WorkerDep, patch: ConfigPatch) -> dict[
             processing = ProcessingConfig.model_validate(
                 {**settings.processing.model_dump(), **patch.processing.model_dump(exclude_unset=True)})
     except ValidationError as e:
-        problems = "; ".join(f"{'.'.join(map(str, err['loc']))}: {err['msg']}" for err in e.errors(include_url=False))
-        raise ApiError(Reason.bad_input, f"invalid configuration: {problems}") from None
+        raise ApiError(Reason.bad_input, f"invalid configuration: {validation_problems(e)}") from None
     for name, cfg in new_cameras.items():
         error = worker.reconfigure_camera(cfg)
         if error:
@@ -101,14 +98,5 @@ def put_config(request: Request, worker: WorkerDep, patch: ConfigPatch) -> dict[
         settings.cameras[names[name]] = cfg
     if processing is not None:
         worker.update_processing(processing)
-    state_dir = settings.resolved_state_dir()
-    write_json_atomic(state_dir / RUNTIME_FILE, runtime_sections(settings))
+    save_runtime_file(settings)
     return runtime_sections(settings)
-
-
-def load_runtime_overrides(state_dir: Any) -> dict[str, Any]:
-    try:
-        data = json.loads((state_dir / RUNTIME_FILE).read_text(encoding="utf-8"))
-    except (FileNotFoundError, json.JSONDecodeError):
-        return {}
-    return data if isinstance(data, dict) else {}

@@ -21,6 +21,7 @@ from api.deps import WorkerDep
 from api.errors import ApiError
 from api.security import Authorized
 from service.core.results import Reason, SolveError
+from service.formats import FormatError
 from service.handeye_session import HandEyeSession, SessionError
 
 router = APIRouter(prefix="/calibration/handeye/session", tags=["hand-eye calibration"])
@@ -115,7 +116,10 @@ def solve(worker: WorkerDep, apply: bool = False) -> dict[str, Any]:
     try:
         result = s.solve(worker.calibration.camera, worker.calibration.field)
         if apply:
-            s.applied_version = worker.calibration.update("handeye", s.handeye_payload(), note="hand-eye session")
+            try:
+                s.applied_version = worker.calibration.update("handeye", s.handeye_payload(), note="hand-eye session")
+            except FormatError as e:  # a result outside the physical limits is not stored
+                raise ApiError(Reason.bad_input, f"the hand-eye result is not applied: {e}") from None
             worker.event("info", "calibration_changed", f"hand-eye version {s.applied_version} from a session")
     except SessionError as e:
         raise _err(e) from None
