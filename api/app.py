@@ -23,14 +23,14 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.staticfiles import StaticFiles
 
-from api import errors
-from api.routes import calibration, camera_calibration, config, data, handeye, health, measure
-from api.routes.config import load_runtime_overrides
+from api import docs, errors
+from api.middleware import EdgeGuard, EdgeRules
+from api.routes import calibration, camera_calibration, config, data, handeye, health, measure, sim
 from api.security import resolve_token
 from api.ws import Hub
 from service.calibration_state import CalibrationState
 from service.calibstore import CalibrationStore
-from service.settings import Settings, with_runtime_overrides
+from service.settings import Settings, apply_runtime_file
 from service.storage import MeasurementStore
 from service.worker import Worker
 
@@ -55,19 +55,19 @@ def create_app(settings: Settings) -> FastAPI:
         async with contextlib.AsyncExitStack() as stack:
             state_dir = settings.resolved_state_dir()
             state_dir.mkdir(parents=True, exist_ok=True)
-            runtime = with_runtime_overrides(settings, load_runtime_overrides(state_dir))
-            settings.cameras, settings.processing = runtime.cameras, runtime.processing
             app.state.token = resolve_token(settings.server.token, state_dir)
             store = MeasurementStore(
                 state_dir / settings.storage.database, retention_days=settings.storage.retention_days
             )
             store.start()
             stack.callback(store.close)
+            runtime = apply_runtime_file(settings, events=store)  # a bad file: set aside, an event, not applied
+            settings.cameras, settings.processing = runtime.cameras, runtime.processing
             calib_store = CalibrationStore(state_dir / "calibration")
             worker = Worker(settings, store)
             # loading calibrations may build the simulated cell (a second); keep the loop free
             worker.calibration = await asyncio.to_thread(CalibrationState, settings, calib_store, worker.cell)
-            hub = Hub()
+            hub = Hub(stall_timeout_s=settings.server.ws_stall_timeout_s)
             hub.bind(asyncio.get_running_loop())
             app.state.worker, app.state.store, app.state.hub = worker, store, hub
             app.state.calib_store = calib_store
@@ -84,15 +84,21 @@ def create_app(settings: Settings) -> FastAPI:
         summary="Real-time photogrammetric robot pose measurement",
         version="0.1.0",
         lifespan=lifespan,
+        docs_url=None,  # served from local assets by api.docs
+        redoc_url=None,
     )
     app.state.settings = settings
     errors.install(app)
+    # Host, WebSocket Origin, token and body size are checked from the headers before any route runs;
+    # CORS (added last, so outermost) puts its headers on those refusals too
+    app.add_middleware(EdgeGuard, rules=EdgeRules.of(settings.server), token=lambda: getattr(app.state, "token", None))
     if settings.server.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.server.cors_origins, allow_methods=["*"],
                            allow_headers=["*"])
     # the hand-eye session routes come before /calibration/{kind} so that their paths win
-    for module in (health, measure, data, config, handeye, camera_calibration, calibration):
+    for module in (health, measure, data, config, handeye, camera_calibration, calibration, sim):
         app.include_router(module.router)
+    docs.install(app)
     if STATIC.is_dir():
         app.mount("/", StaticFiles(directory=STATIC, html=True), name="dashboard")
     return app

@@ -4,6 +4,12 @@ The token comes from the configuration, or is generated at the first start and
 kept in ``<state_dir>/api-token`` (mode 0600) so that nothing is open by
 default and the operator can read it on the cell PC. Reads stay open on the
 bound interface (loopback unless configured), as dashboards expect.
+
+The check runs twice with the one function :func:`token_matches`: in the edge
+middleware (``api/middleware.py``) for every method but GET, HEAD and OPTIONS,
+from the headers alone and before a byte of the body is read; and as the
+``Authorized`` dependency of each state-changing route (defence in depth, and
+what puts the "Authorize" button into ``/docs``).
 """
 
 from __future__ import annotations
@@ -40,14 +46,31 @@ def resolve_token(configured: str, state_dir: Path) -> str:
     return token
 
 
+UNAUTHORIZED = "this request changes the cell's state and needs 'Authorization: Bearer <token>'"
+
+
+def token_matches(authorization: str | None, expected: str | None) -> bool:
+    """Whether an ``Authorization`` header value is ``Bearer <expected>`` (compared in constant time).
+
+    >>> token_matches("Bearer s3cret", "s3cret"), token_matches("bearer  s3cret ", "s3cret")
+    (True, True)
+    >>> token_matches("Basic s3cret", "s3cret"), token_matches(None, "s3cret"), token_matches("Bearer ", "")
+    (False, False, False)
+    """
+    if not authorization or not expected:
+        return False
+    scheme, _, credentials = authorization.strip().partition(" ")
+    if scheme.lower() != "bearer":
+        return False
+    return hmac.compare_digest(credentials.strip().encode(), expected.encode())
+
+
 def require_token(
     request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 ) -> None:
-    expected: str = request.app.state.token
-    if credentials is None or not hmac.compare_digest(credentials.credentials.encode(), expected.encode()):
-        raise ApiError(
-            "unauthorized", "this request changes the cell's state and needs 'Authorization: Bearer <token>'"
-        )
+    # the scheme's parse (credentials) only feeds the OpenAPI security scheme; the header decides
+    if not token_matches(request.headers.get("authorization"), getattr(request.app.state, "token", None)):
+        raise ApiError("unauthorized", UNAUTHORIZED)
 
 
 Authorized = Depends(require_token)

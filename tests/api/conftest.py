@@ -20,6 +20,7 @@ import pytest
 import uvicorn
 
 from api.app import create_app
+from api.serve import uvicorn_config
 from service.settings import Settings, load_settings
 
 
@@ -58,8 +59,8 @@ class LiveServer:
 
 def run_server(settings: Settings) -> Iterator[LiveServer]:
     app = create_app(settings)
-    config = uvicorn.Config(app, host="127.0.0.1", port=settings.server.port, lifespan="on", log_level="warning")
-    server = uvicorn.Server(config)
+    # the service's own uvicorn options (timeouts, limits), on loopback
+    server = uvicorn.Server(uvicorn_config(app, settings, host="127.0.0.1", log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 60
