@@ -4,15 +4,30 @@ The worker calls ``Hub.publish_threadsafe`` from its processing thread; the
 result is serialised once and handed to the event loop. A client whose queue is
 full loses its *oldest* message (the newest pose matters most), the loss is
 counted per client and in ``/health``, and neither the worker nor the other
-clients ever wait for a slow client.
+clients ever wait for a slow client. A client that has not taken a message for
+``stall_timeout_s`` (its socket's buffers are full: it stopped reading) is
+disconnected, so a stuck dashboard cannot hold the connection and its queue
+forever; that too is counted.
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
+import time
 from dataclasses import dataclass, field
 from typing import Any
+
+from starlette.websockets import WebSocket
+
+
+def dumps(result: dict[str, Any]) -> str:
+    """A result as compact JSON text (the one encoding of the stream)."""
+    return json.dumps(result, separators=(",", ":"))
+
+
+class StalledClient(Exception):
+    """The client has not read for longer than the hub's stall timeout."""
 
 
 @dataclass(eq=False)
@@ -27,10 +42,12 @@ class Client:
 
 
 class Hub:
-    def __init__(self, queue_size: int = 32) -> None:
+    def __init__(self, queue_size: int = 32, stall_timeout_s: float = 10.0) -> None:
         self.queue_size = queue_size
+        self.stall_timeout_s = stall_timeout_s
         self.clients: set[Client] = set()
         self.dropped_total = 0
+        self.stalled_disconnects = 0
         self._loop: asyncio.AbstractEventLoop | None = None
 
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
@@ -49,11 +66,12 @@ class Hub:
         loop = self._loop
         if loop is None or loop.is_closed():
             return
-        text = json.dumps(result, separators=(",", ":"))
+        text = dumps(result)
         lite = text
         if "targets" in result and any(not c.targets for c in list(self.clients)):
-            lite = json.dumps({k: v for k, v in result.items() if k != "targets"}, separators=(",", ":"))
-        meta = (result.get("camera"), int(result.get("t_exposure_host_ns", 0)))
+            lite = dumps({k: v for k, v in result.items() if k != "targets"})
+        # decimation runs on the exposure instant; an outage result has none: its publication then
+        meta = (result.get("camera"), int(result.get("t_exposure_host_ns") or time.monotonic_ns()))
         try:
             loop.call_soon_threadsafe(self._publish, (text, lite), meta)
         except RuntimeError:  # the loop closed between the check and the call (shutdown)
@@ -74,9 +92,27 @@ class Hub:
                 self.dropped_total += 1
             c.queue.put_nowait(texts[0] if c.targets else texts[1])
 
+    async def send(self, websocket: WebSocket, client: Client, text: str) -> None:
+        """Send one message; raises StalledClient when the client has not read for ``stall_timeout_s``."""
+        try:
+            await asyncio.wait_for(websocket.send_text(text), self.stall_timeout_s)
+        except TimeoutError:
+            self.stalled_disconnects += 1
+            raise StalledClient(
+                f"WebSocket client {_peer(websocket)} read nothing for {self.stall_timeout_s:.1f} s "
+                f"({client.dropped} messages dropped): disconnected") from None
+        client.sent += 1
+
     def stats(self) -> dict[str, Any]:
         return {
             "clients": len(self.clients),
             "dropped_total": self.dropped_total,
+            "stalled_disconnects": self.stalled_disconnects,
             "queue_size": self.queue_size,
+            "stall_timeout_s": self.stall_timeout_s,
         }
+
+
+def _peer(websocket: WebSocket) -> str:
+    c = websocket.client
+    return f"{c.host}:{c.port}" if c is not None else "(unknown)"

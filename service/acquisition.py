@@ -31,8 +31,10 @@ from drivers.base import (
 log = logging.getLogger(__name__)
 
 FETCH_TIMEOUT_S = 0.1  # short, so that commands wait at most this long
-RETRY_MIN_S, RETRY_MAX_S = 0.5, 5.0
+# reconnection back-off: a camera is found again within ~1 s of its return, however long it was gone
+RETRY_MIN_S, RETRY_MAX_S = 0.5, 1.0
 STALLED = "stalled"  # reported state of a connected camera that delivers no frames
+STALL_MIN_S, STALL_PERIODS = 1.0, 10  # silent for longer than both: stalled
 
 
 class DeviceState(StrEnum):
@@ -92,6 +94,7 @@ class CameraChannel:
         self.driver = driver
         self.settings = settings
         self.slot = FrameSlot(wakeup)
+        self._wakeup = wakeup
         self.state = DeviceState.starting
         self.last_error = ""
         self.counters = CameraCounters()
@@ -100,6 +103,7 @@ class CameraChannel:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"camera-{name}", daemon=True)
         self._last_seq: int | None = None
+        self._connected_ns = time.monotonic_ns()
         self.command_error: dict[int, str] = {}
 
     def start(self) -> None:
@@ -134,6 +138,8 @@ class CameraChannel:
             level = "info" if state is DeviceState.ok else "warning"
             self._on_event(level, f"camera_{state}", f"camera {self.name}: {error or state}")
         self.state, self.last_error = state, error
+        with self._wakeup:  # wake the processing thread: it reports an outage at once
+            self._wakeup.notify_all()
 
     def _connect(self) -> bool:
         try:
@@ -146,6 +152,7 @@ class CameraChannel:
                 pass
             self._set_state(DeviceState.disconnected, str(e))
             return False
+        self._connected_ns = time.monotonic_ns()
         self._set_state(DeviceState.ok)
         self._last_seq = None
         return True
@@ -221,15 +228,19 @@ class CameraChannel:
         c.last_frame_host_ns = frame.t_host_ns
         c.frames += 1
 
+    def effective_state(self) -> tuple[str, str]:
+        """(state, error) with ``stalled`` for a connected free-running camera that delivers nothing."""
+        state, error, last_ns = str(self.state), self.last_error, self.counters.last_frame_host_ns
+        if self.state is DeviceState.ok and self.settings.trigger is TriggerMode.FREE_RUN:
+            silent_s = (time.monotonic_ns() - max(last_ns, self._connected_ns)) * 1e-9
+            if silent_s > max(STALL_MIN_S, STALL_PERIODS / (self.settings.frame_rate_hz or 1.0)):
+                return STALLED, f"camera {self.name} is connected but delivered no frame for {silent_s:.1f} s"
+        return state, error
+
     def snapshot(self) -> dict[str, Any]:
         c = self.counters
         age_s = (time.monotonic_ns() - c.last_frame_host_ns) * 1e-9 if c.last_frame_host_ns else None
-        state, error = str(self.state), self.last_error
-        # connected but silent: a free-running camera that delivers nothing is not "ok"
-        period_s = 1.0 / (self.settings.frame_rate_hz or 1.0)
-        if (self.state is DeviceState.ok and self.settings.trigger is TriggerMode.FREE_RUN and age_s is not None
-                and age_s > max(3.0, 10 * period_s)):
-            state, error = STALLED, f"camera {self.name} is connected but delivered no frame for {age_s:.1f} s"
+        state, error = self.effective_state()
         return {
             "state": state,
             "error": error,

@@ -20,9 +20,16 @@ def _speed(args: argparse.Namespace) -> str:
     return bench_speed.run(n_frames=args.frames, seed=args.seed)
 
 
+def _faults(args: argparse.Namespace) -> str:
+    from service import bench_faults
+
+    return bench_faults.run(rounds=args.rounds)
+
+
 SECTIONS: dict[str, Callable[[argparse.Namespace], str]] = {
     "accuracy": _accuracy,
     "speed": _speed,
+    "faults": _faults,
 }
 
 

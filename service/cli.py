@@ -473,11 +473,12 @@ def build_parser() -> argparse.ArgumentParser:
         "sections",
         nargs="*",
         default=[],
-        help="sections to run (default: all): accuracy, speed",
+        help="sections to run (default: all): accuracy, speed, faults",
     )
     b.add_argument("--frames", type=int, default=120, help="rendered frames for the speed section")
     b.add_argument("--trials", type=int, default=500, help="Monte-Carlo trials for the accuracy tables")
     b.add_argument("--seed", type=int, default=1)
+    b.add_argument("--rounds", type=int, default=5, help="repetitions of each fault for the faults section")
     b.set_defaults(func=cmd_bench)
     return p
 

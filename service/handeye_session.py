@@ -122,7 +122,7 @@ class HandEyeSession:
             if spread_mm > STILL_POSITION_MM or spread_deg > STILL_ANGLE_DEG:
                 raise SessionError("robot_moving", f"the robot moved {spread_mm:.2f} mm in the last "
                                                    f"{STILL_WINDOW_S} s; record samples at rest")
-        result = worker.request_measurement(self.camera).result(timeout=timeout_s)
+        result = worker.request_measurement(self.camera).result(timeout=timeout_s).result
         if not result.get("ok"):
             raise SessionError(result.get("reason", "no_frame"), result.get("message", "the frame was not measured"))
         if result.get("T_base_flange") is None:

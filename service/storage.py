@@ -58,6 +58,9 @@ _ROW_COLUMNS = tuple(c for c in CSV_COLUMNS if c != "message")
 _RETENTION_CHUNK = 10_000
 _RETENTION_MAX_CHUNKS = 20  # per run, so queued rows never wait long behind a purge
 _RETRY_MAX_S = 1.0
+# a lock held by another process (a backup, a sqlite3 shell) fails a commit after this long; the batch
+# is then retried, and /health reports the outage from the first failure on
+_BUSY_TIMEOUT_S = 0.5
 _JOURNAL_SIZE_LIMIT_BYTES = 64 * 1024 * 1024
 
 Item = tuple[int, str, tuple[Any, ...]]  # (seq, or 0 for an event; "m" | "e"; column values)
@@ -288,6 +291,7 @@ class MeasurementStore:
                                       "abandoned", "retention_deleted"), 0)
         self._last_error: str | None = None
         self._last_error_t_wall: str | None = None
+        self._failing_since: float | None = None  # monotonic s of the first failed commit of the current outage
 
     # ------------------------------------------------------------ opening
 
@@ -317,13 +321,14 @@ class MeasurementStore:
     def _open_write_connection(self) -> sqlite3.Connection:
         conn = None
         try:
-            conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=2.0)
+            conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=5.0)
             mode = conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
             if str(mode).lower() != "wal":
                 raise StorageError(f"the measurement database {self.path} cannot use WAL mode (journal_mode "
                                    f"is {mode}): put it on a local file system")
             self._configure_write_connection(conn)
             self._migrate(conn)
+            conn.execute(f"PRAGMA busy_timeout={int(_BUSY_TIMEOUT_S * 1000)}")  # opening may wait longer
             return conn
         except BaseException as e:
             if conn is not None:
@@ -542,6 +547,8 @@ class MeasurementStore:
                 self._record_error(e)
                 if attempts == 1:
                     t_fail = time.monotonic()
+                    with self._cond:
+                        self._failing_since = t_fail
                     log.error("writing %d rows to %s failed (%s); retrying", len(batch), self.path, e)
                     self._own_events.append(_event_row(
                         "storage_error", f"writing to the measurement database failed: {e}", "error",
@@ -561,6 +568,7 @@ class MeasurementStore:
         self._own_events = []
         seqs = [seq for seq, tag, _ in batch if tag == "m"]
         with self._cond:
+            self._failing_since = None
             self._written_seq = seqs[-1] if seqs else self._written_seq
             self._counts["written"] += len(seqs)
             self._counts["events_written"] += len(batch) - len(seqs) + len(own_events)
@@ -589,7 +597,7 @@ class MeasurementStore:
             try:
                 conn.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()
             finally:
-                conn.execute("PRAGMA busy_timeout=2000")
+                conn.execute(f"PRAGMA busy_timeout={int(_BUSY_TIMEOUT_S * 1000)}")
         except sqlite3.Error as e:
             self._record_error(e)
             log.warning("maintenance of %s failed: %s", self.path, e)
@@ -656,10 +664,26 @@ class MeasurementStore:
             w.writerow(["" if (v := extra.get(c, r.get(c))) is None else v for c in CSV_COLUMNS])
         return buf.getvalue()
 
-    def stats(self) -> dict[str, Any]:
-        """Counters since open (queued, written, dropped, ...), database size and the last write error."""
+    def health(self) -> tuple[str, str]:
+        """``("ok", "")``, or ``("degraded", sentence)`` while commits fail or the writer is gone."""
         with self._cond:
-            out: dict[str, Any] = {"queued": len(self._pending) + self._inflight,
+            failing_since, queued = self._failing_since, len(self._pending) + self._inflight
+            thread, closed = self._thread, self._closed or self._stopping
+        if closed:
+            return "degraded", f"the measurement store {self.path} is closed"
+        if thread is not None and not thread.is_alive():
+            return "degraded", f"the storage writer for {self.path} has stopped (see the log); nothing is stored"
+        if failing_since is not None:
+            return "degraded", (f"writing to the measurement database has failed for "
+                                f"{time.monotonic() - failing_since:.1f} s ({self._last_error}); {queued} rows "
+                                "wait and are retried")
+        return "ok", ""
+
+    def stats(self) -> dict[str, Any]:
+        """Counters since open (queued, written, dropped, ...), database size, state and the last write error."""
+        state, error = self.health()
+        with self._cond:
+            out: dict[str, Any] = {"state": state, "error": error, "queued": len(self._pending) + self._inflight,
                                    "last_written_seq": self._written_seq, **self._counts}
         size = 0
         for suffix in ("", "-wal"):

@@ -12,6 +12,16 @@ Threads (one owner per device, python-can / Opentrons style):
 
 Nothing here raises on bad data: every frame gives a result dict, with
 ``"ok": false`` and a ``reason`` when it could not be measured.
+
+What a client sees during a fault. A camera that is disconnected, failed or
+stalled gets an outage result (``"ok": false``, ``camera_disconnected``) at
+once and then once a second, to the stream, to waiting requests and as its
+newest result; a robot outage leaves the camera pose and says why the flange
+part is missing. :meth:`Worker.current` marks a result older than a few frame
+periods ``"stale": true`` with its age. A triggered measurement is answered with
+the row's sequence number in the store; the API acknowledges it only once that
+row is committed (:meth:`Worker.wait_stored`), so the processing thread never
+waits for the disk.
 """
 
 from __future__ import annotations
@@ -22,6 +32,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -41,6 +52,21 @@ log = logging.getLogger(__name__)
 
 Subscriber = Callable[[dict[str, Any]], None]
 
+RECONNECT_MAX_S = 1.0  # longest wait between reconnection attempts: a device is back within ~1 s of return
+OUTAGE_REPEAT_S = 1.0  # an outage result is repeated this often while a camera is down
+STALE_PERIODS = 5  # a result older than this many frame periods is stale ...
+STALE_MIN_S = 0.5  # ... and never younger than this (scheduling jitter on a loaded machine)
+FAULT_ACTIONS = {"camera": ("unplug", "plug", "stall", "garble"), "robot": ("unplug", "plug")}
+
+
+@dataclass(frozen=True)
+class Answer:
+    """A triggered measurement: its result, and the store's sequence number of its row (None: not queued)."""
+
+    result: dict[str, Any]
+    stored_seq: int | None = None
+    storage_error: str = ""
+
 
 class Worker:
     """Runs the cell (see the module docstring). ``start()`` returns at once; devices come up in the background."""
@@ -58,13 +84,18 @@ class Worker:
         self.robot_state = DeviceState.absent if settings.robot.driver == "none" else DeviceState.starting
         self.robot_error = ""
         self._subscribers: list[Subscriber] = []
-        self._waiters: list[tuple[str | None, int, concurrent.futures.Future[dict[str, Any]]]] = []
+        self._waiters: list[tuple[str | None, int, concurrent.futures.Future[Answer]]] = []
         self._lock = threading.Lock()
         self.latest: dict[str, dict[str, Any]] = {}
+        # per camera: host ns the newest result's data is from (its exposure; an outage result: its
+        # publication) and whether it is an outage notice
+        self._latest_t_ns: dict[str, tuple[int, bool]] = {}
+        self._outage_published_ns: dict[str, tuple[str, int]] = {}
         self.latest_frame: dict[str, tuple[Frame, dict[str, Any]]] = {}
         self._latency_ms: deque[float] = deque(maxlen=200)
         self._processing_ms: deque[float] = deque(maxlen=200)
-        self.counters = {"results": 0, "ok": 0, "failed": 0, "roi": 0, "full": 0, "stored": 0, "triggered": 0}
+        self.counters = {"results": 0, "ok": 0, "failed": 0, "roi": 0, "full": 0, "stored": 0, "triggered": 0,
+                         "not_stored": 0, "outage_results": 0}
         self._last_stored_ns = 0
         self._threads: list[threading.Thread] = []
         self.started_ns = time.monotonic_ns()
@@ -103,7 +134,8 @@ class Worker:
         self.cell.stop()
         with self._lock:
             for _, _, fut in self._waiters:
-                fut.set_result(Failure(Reason.no_frame, "the service is shutting down").to_dict())
+                if not fut.done():
+                    fut.set_result(Answer(Failure(Reason.no_frame, "the service is shutting down").to_dict()))
             self._waiters.clear()
 
     def _add_camera(self, cfg: CameraConfig) -> None:
@@ -140,7 +172,7 @@ class Worker:
                 except DriverError as e:
                     self._set_robot_state(DeviceState.disconnected, str(e))
                     self._stop.wait(retry_s)
-                    retry_s = min(5.0, retry_s * 2)
+                    retry_s = min(RECONNECT_MAX_S, retry_s * 2)
                     continue
             elif self.robot_state is not DeviceState.ok:
                 self._set_robot_state(DeviceState.ok)
@@ -191,16 +223,19 @@ class Worker:
 
     # --- triggered measurement -------------------------------------------------------------------
 
-    def request_measurement(self, camera: str | None = None) -> concurrent.futures.Future[dict[str, Any]]:
-        """A future for the result of the next frame exposed after now (software-triggered if so configured)."""
-        fut: concurrent.futures.Future[dict[str, Any]] = concurrent.futures.Future()
+    def request_measurement(self, camera: str | None = None) -> concurrent.futures.Future[Answer]:
+        """A future for the result of the next frame exposed after now (software-triggered if so configured).
+
+        It is answered by an outage result as soon as the camera is found down while waiting.
+        """
+        fut: concurrent.futures.Future[Answer] = concurrent.futures.Future()
         if camera is not None and camera not in self.processors and camera != RIG:
             raise KeyError(camera)
         names = [camera] if camera and camera != RIG else list(self.processors)
         for name in names:
             reason = self._camera_unavailable(name)
             if reason is not None:
-                fut.set_result(reason)
+                fut.set_result(Answer(reason))
                 return fut
         with self._lock:
             self._waiters.append((camera, time.monotonic_ns(), fut))
@@ -208,6 +243,19 @@ class Worker:
             if name in self.cameras:
                 self.cameras[name].request_trigger()
         return fut
+
+    def wait_stored(self, answer: Answer, timeout_s: float) -> tuple[bool, str]:
+        """Wait until the answer's row is committed (and fsynced); ``(True, "")`` or ``(False, why)``."""
+        if self.store is None:
+            return True, ""  # a worker without a store (tests, the CLI) has nothing to acknowledge
+        if answer.stored_seq is None:
+            return False, f"the measurement could not be queued for storage: {answer.storage_error}"
+        if self.store.wait_written(answer.stored_seq, max(0.0, timeout_s)):
+            return True, ""
+        _, why = self.store.health()
+        return False, (f"the measurement was not committed to the database within {timeout_s:.1f} s"
+                       f"{f': {why}' if why else ''}; it is not acknowledged (it is kept queued and written "
+                       "when the database accepts writes again)")
 
     def _camera_unavailable(self, name: str) -> dict[str, Any] | None:
         ch = self.cameras.get(name)
@@ -224,18 +272,41 @@ class Worker:
         d.update(camera=camera, t_wall=_wall_now())
         return d
 
+    # --- fault injection (the simulated cell only) -----------------------------------------------
+
+    def inject_fault(self, device: str, action: str, camera: str | None = None) -> str:
+        """Unplug, plug, stall or garble a simulated device; returns a sentence of what was done.
+
+        Raises LookupError when there is no simulated device to act on, ValueError for an unknown action.
+        """
+        if action not in FAULT_ACTIONS.get(device, ()):
+            raise ValueError(f"device {device!r} takes the actions {FAULT_ACTIONS.get(device, ())}, not {action!r}")
+        if device == "camera":
+            name = camera or next(iter(self.cameras), None)
+            ch = self.cameras.get(name) if name is not None else None
+            if ch is None:
+                raise LookupError(f"no running camera named {name!r}; cameras: {sorted(self.cameras)}")
+            target: Any = ch.driver
+            what = f"camera {name}"
+        else:
+            target, what = self.robot, "robot"
+        if not callable(getattr(target, action, None)):
+            raise LookupError(f"the {what} is not simulated in this process (sim.transport = "
+                              f"{self.settings.sim.transport!r}): faults are injected into the direct simulated cell")
+        getattr(target, action)()
+        self.event("warning" if action != "plug" else "info", "sim_fault", f"simulated fault: {what} {action}")
+        return f"{what}: {action}"
+
     # --- processing ------------------------------------------------------------------------------
 
-    def _next_frame(self) -> tuple[str, Frame] | None:
+    def _next_frame(self, timeout_s: float) -> tuple[str, Frame] | None:
         with self._wakeup:
-            for _ in range(2):
-                for name, ch in self.cameras.items():
-                    frame = ch.slot.take()
-                    if frame is not None:
-                        return name, frame
-                if self._stop.is_set():
-                    return None
-                self._wakeup.wait(0.5)
+            for name, ch in self.cameras.items():
+                frame = ch.slot.take()
+                if frame is not None:
+                    return name, frame
+            if not self._stop.is_set():
+                self._wakeup.wait(timeout_s)  # a frame or a camera's state change wakes it
         return None
 
     def _process_loop(self) -> None:
@@ -249,7 +320,8 @@ class Worker:
         self.processing_ready = True
         self.event("info", "processing_ready", "processing is ready")
         while not self._stop.is_set():
-            got = self._next_frame()
+            self._publish_outages()
+            got = self._next_frame(0.25)
             if got is None:
                 continue
             name, frame = got
@@ -258,46 +330,76 @@ class Worker:
             except Exception as e:  # a bug must not stop the cell: report it as a failed frame
                 log.exception("processing a frame of camera %s", name)
                 result = self._failure(name, Reason.bad_image, f"internal error while measuring: {e!r}")
-            self._publish(name, frame, result)
+            self._outage_published_ns.pop(name, None)
+            self._publish(name, result, frame)
             if len(self.cameras) >= 2 and self.calibration.rig is not None:
                 combined = self.rig.add(result, self.calibration.rig, self.calibration.field, self.calibration.handeye)
                 if combined is not None:
-                    self._publish(RIG, frame, combined)
+                    self._publish(RIG, combined, frame)
+
+    def _camera_outage(self, name: str) -> tuple[str, str] | None:
+        """(state, sentence) of a camera that cannot deliver measurable frames now, else None."""
+        ch = self.cameras.get(name)
+        if ch is None:
+            return str(DeviceState.failed), self.processors[name].failed_reason or f"camera {name} failed to start"
+        state, error = ch.effective_state()
+        if state in (str(DeviceState.ok), str(DeviceState.starting), str(DeviceState.stopped)):
+            return None
+        return state, error or f"camera {name} is {state}"
+
+    def _publish_outages(self) -> None:
+        now = time.monotonic_ns()
+        for name in self.processors:
+            outage = self._camera_outage(name)
+            if outage is None:
+                continue
+            state, error = outage
+            last = self._outage_published_ns.get(name)
+            if last is not None and last[0] == state and now - last[1] < OUTAGE_REPEAT_S * 1e9:
+                continue
+            self._outage_published_ns[name] = (state, now)
+            result = self._failure(name, Reason.camera_disconnected, error)
+            result["camera_state"] = state
+            self.counters["outage_results"] += 1
+            self._publish(name, result, None)
 
     def _rig_active(self) -> bool:
         return len(self.cameras) >= 2 and self.calibration.rig is not None
 
-    def _publish(self, name: str, frame: Frame, result: dict[str, Any]) -> None:
+    def _publish(self, name: str, result: dict[str, Any], frame: Frame | None) -> None:
+        """Hand one result to waiting requests, the store and the subscribers (``frame`` None: an outage)."""
         c = self.counters
-        c["results"] += 1
-        c["ok" if result.get("ok") else "failed"] += 1
-        if result.get("mode") in ("roi", "full"):
-            c[result["mode"]] += 1
-        timings = result.get("timings_ms", {})
-        if "latency" in timings:
-            self._latency_ms.append(timings["latency"])
-        if "processing" in timings:
-            self._processing_ms.append(timings["processing"])
-        self.latest[name] = result
-        self.latest_frame[name] = (frame, result)
-        t_exposure = result.get("t_exposure_host_ns", frame.t_host_ns)
+        now = time.monotonic_ns()
+        if frame is not None:
+            c["results"] += 1
+            c["ok" if result.get("ok") else "failed"] += 1
+            if result.get("mode") in ("roi", "full"):
+                c[result["mode"]] += 1
+            timings = result.get("timings_ms", {})
+            if "latency" in timings:
+                self._latency_ms.append(timings["latency"])
+            if "processing" in timings:
+                self._processing_ms.append(timings["processing"])
+            self.latest_frame[name] = (frame, result)
+            t_data = int(result.get("t_exposure_host_ns", frame.t_host_ns))
+        else:
+            t_data = now
         with self._lock:
+            self.latest[name] = result
+            self._latest_t_ns[name] = (t_data, frame is None)
             subscribers = list(self._subscribers)
             # a request for "any camera" is answered by the rig's result when a rig is calibrated
             answers_any = name == (RIG if self._rig_active() else name)
             waiting = [w for w in self._waiters
-                       if (w[0] == name or (w[0] is None and answers_any)) and t_exposure >= w[1]]
+                       if (w[0] == name or (w[0] is None and answers_any)) and (frame is None or t_data >= w[1])]
             self._waiters = [w for w in self._waiters if w not in waiting]
-        stored_seq = None
-        if waiting or self._due_for_storage(frame):
-            stored_seq = self._store(result, triggered=bool(waiting))
+        answer = Answer(result)
+        if frame is not None and (waiting or self._due_for_storage(frame)):
+            answer = self._store(result, triggered=bool(waiting))
         for _, _, fut in waiting:
             c["triggered"] += 1
-            if stored_seq is not None and self.store is not None:
-                # acknowledged = committed: a kill -9 after the reply loses nothing
-                self.store.wait_written(stored_seq, timeout_s=2.0)
             if not fut.done():
-                fut.set_result(result)
+                fut.set_result(answer)
         for callback in subscribers:
             try:
                 callback(result)
@@ -308,21 +410,54 @@ class Worker:
         every_ns = self.settings.storage.stream_every_s * 1e9
         return self.store is not None and frame.t_host_ns - self._last_stored_ns >= every_ns
 
-    def _store(self, result: dict[str, Any], triggered: bool) -> int | None:
+    def _store(self, result: dict[str, Any], triggered: bool) -> Answer:
         if self.store is None:
-            return None
+            return Answer(result)
         self._last_stored_ns = time.monotonic_ns()
         try:
             seq = int(self.store.add_measurement({**result, "triggered": triggered}))
-        except StorageError as e:  # a full queue (disk far behind): counted by the store, reported here
+        except (StorageError, ValueError, TypeError) as e:  # a full queue (disk far behind), a closed store
+            self.counters["not_stored"] += 1
             log.warning("measurement not stored: %s", e)
-            return None
+            return Answer(result, None, str(e))
         self.counters["stored"] += 1
-        return seq
+        return Answer(result, seq)
+
+    # --- the newest result, marked by its age -----------------------------------------------------
+
+    def stale_after_s(self, name: str) -> float:
+        """Age beyond which a camera's (or the rig's) newest result is no longer current."""
+        rates = [c.frame_rate_hz for c in self.settings.cameras if name in (c.name, RIG) and c.frame_rate_hz]
+        return max(STALE_MIN_S, STALE_PERIODS / min(rates)) if rates else STALE_MIN_S
+
+    def current(self, camera: str | None = None) -> dict[str, Any] | None:
+        """The newest result of ``camera`` (or the newest of all), with ``age_s`` and ``stale``.
+
+        A result older than :meth:`stale_after_s` is a copy with ``"ok": false``, ``"reason": "stale"``,
+        a sentence and the measured values kept for diagnosis (``"measured_reason"`` if it had one);
+        an outage result is always current (it says what is wrong now).
+        """
+        with self._lock:
+            entries = [(n, r, *self._latest_t_ns[n]) for n, r in self.latest.items() if camera in (None, n)]
+        if not entries:
+            return None
+        name, result, t_data_ns, is_outage = max(entries, key=lambda e: e[2])
+        age_s = max(0.0, (time.monotonic_ns() - t_data_ns) * 1e-9)
+        out = {**result, "age_s": round(age_s, 3), "stale": False}
+        if is_outage or age_s <= self.stale_after_s(name):
+            return out
+        outage = self._camera_outage(name) if name in self.processors else None
+        why = f": {outage[1]}" if outage else ""
+        out.update(ok=False, reason=str(Reason.stale), stale=True,
+                   message=f"the newest result of {name} is {age_s:.1f} s old, no longer current{why}")
+        if result.get("reason"):
+            out["measured_reason"] = result["reason"]
+        return out
 
     # --- reports ---------------------------------------------------------------------------------
 
     def health(self) -> dict[str, Any]:
+        """Device, storage and processing states; ``problems`` says in sentences what is not ok."""
         cams = {name: ch.snapshot() for name, ch in self.cameras.items()}
         for name, proc in self.processors.items():
             if name not in cams:
@@ -331,19 +466,30 @@ class Worker:
         if self.robot is not None:
             robot.update(driver=self.robot.info.driver, rate_hz=self.robot.info.rate_hz)
         states = [c["state"] for c in cams.values()]
+        problems = [f"camera {n}: {c.get('error') or c['state']}" for n, c in cams.items()
+                    if c["state"] not in ("ok", "starting")]
         if self.robot_state is not DeviceState.absent:
             states.append(robot["state"])
+            if self.robot_state not in (DeviceState.ok, DeviceState.starting):
+                problems.append(f"robot: {self.robot_error or self.robot_state}")
+        storage = self.store.stats() if self.store is not None else None
+        if storage is not None:
+            states.append(storage["state"])
+            if storage["state"] != "ok":
+                problems.append(f"storage: {storage['error']}")
         if not self.processing_ready:
             status = "initializing"
         elif all(s == "ok" for s in states):
             status = "ok"
-        elif any(s == "starting" for s in states) and (time.monotonic_ns() - self.started_ns) < 30e9:
+        elif (not problems and any(s == "starting" for s in states)
+              and (time.monotonic_ns() - self.started_ns) < 30e9):
             status = "initializing"
         else:
             status = "degraded"
         return {
             "ok": status == "ok",
             "status": status,
+            "problems": problems,
             "uptime_s": round((time.monotonic_ns() - self.started_ns) * 1e-9, 1),
             "cameras": cams,
             "robot": robot,
@@ -354,7 +500,7 @@ class Worker:
                 "processing_ms_median": _median(self._processing_ms),
                 "time_offset": {n: p.time_offset_report() for n, p in self.processors.items()},
             },
-            "storage": self.store.stats() if self.store is not None else None,
+            "storage": storage,
         }
 
 

@@ -362,3 +362,22 @@ def test_disk_full_is_recorded_and_the_writer_recovers(open_store, tmp_path):
     assert {r["id"] for r in store.measurements()} == {*acknowledged, seq}
     kinds = [e["kind"] for e in store.events(oldest_first=True)]
     assert kinds == ["storage_error", "storage_recovered"]
+
+
+def test_a_write_lock_held_by_another_connection_degrades_health_until_it_is_released(open_store, tmp_path):
+    store = open_store(flush_interval_s=0.0)
+    assert store.health() == ("ok", "") and store.stats()["state"] == "ok"
+    other = sqlite3.connect(tmp_path / "m.db", isolation_level=None)
+    other.execute("BEGIN IMMEDIATE")  # an operator's sqlite3 shell in the middle of a transaction
+    try:
+        seq = store.add_measurement(result(1))
+        assert not store.wait_written(seq, timeout_s=1.5)
+        state, why = store.health()
+        assert state == "degraded" and "locked" in why and "retried" in why
+        assert store.stats()["state"] == "degraded"
+    finally:
+        other.execute("ROLLBACK")
+        other.close()
+    assert store.wait_written(seq, timeout_s=5.0)  # kept queued, written once the lock is gone
+    assert store.health() == ("ok", "")
+    assert [r["result"]["n"] for r in store.measurements()] == [1]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import time
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
@@ -12,14 +13,16 @@ from pydantic import BaseModel, ConfigDict, Field
 from api.deps import WorkerDep
 from api.errors import STATUS, ApiError
 from api.security import Authorized
+from api.ws import StalledClient, dumps
 from service.annotate import encode_frame
 from service.core.results import Reason
 
 router = APIRouter(tags=["measurement"])
 
 # a frame that was measured but gave no pose (too few targets, ...) is a 200 with "ok": false;
-# these mean that nothing could be measured
-_DEVICE_REASONS = {Reason.camera_disconnected, Reason.initializing, Reason.not_calibrated}
+# these mean that nothing could be measured (or nothing current is there to serve)
+_DEVICE_REASONS = {Reason.camera_disconnected, Reason.initializing, Reason.not_calibrated, Reason.stale}
+_STATUS = {**STATUS, Reason.stale: 503, Reason.storage_unavailable: 503}
 
 
 class MeasureRequest(BaseModel):
@@ -39,28 +42,39 @@ def _camera(worker: Any, camera: str | None) -> None:
 async def post_measure(worker: WorkerDep, request: MeasureRequest | None = None) -> Any:
     """The result of DESIGN section 4. ``"ok": false`` with a ``reason`` when the frame gave no pose
     (HTTP 200), or when no frame could be measured (503 camera_disconnected, 409 not_calibrated,
-    504 timeout)."""
+    504 timeout). A 200 is an acknowledgement: the result is committed (and fsynced) in the
+    database as row ``measurement_id``; otherwise 503 storage_unavailable."""
     req = request or MeasureRequest()
     _camera(worker, req.camera)
+    deadline = time.monotonic() + req.timeout_s
     fut = worker.request_measurement(req.camera)
     try:
-        result: dict[str, Any] = await asyncio.wait_for(asyncio.wrap_future(fut), req.timeout_s)
+        answer = await asyncio.wait_for(asyncio.wrap_future(fut), req.timeout_s)
     except TimeoutError:
         fut.cancel()
         raise ApiError(Reason.timeout, f"no frame was measured within {req.timeout_s} s; see /health") from None
+    result: dict[str, Any] = answer.result
     if not result.get("ok") and result.get("reason") in _DEVICE_REASONS:
         # the cell could not measure at all: an HTTP error status, with the same result body
-        return JSONResponse(result, status_code=STATUS[result["reason"]])
-    return result
+        return JSONResponse(result, status_code=_STATUS[result["reason"]])
+    stored, why = await asyncio.to_thread(worker.wait_stored, answer, deadline - time.monotonic())
+    if not stored:
+        raise ApiError(Reason.storage_unavailable, why, status=_STATUS[Reason.storage_unavailable],
+                       camera=result.get("camera"), t_exposure_host_ns=result.get("t_exposure_host_ns"))
+    return {**result, "measurement_id": answer.stored_seq}
 
 
-@router.get("/poses/latest", summary="The newest result (of one camera, or the newest of all)")
-def get_latest(worker: WorkerDep, camera: str | None = None) -> dict[str, Any]:
+@router.get("/poses/latest", summary="The newest result (of one camera, or the newest of all), with its age",
+            responses={503: {"description": "no current result: the camera is down (camera_disconnected) or the "
+                             "newest result is older than a few frame periods (stale; its values are kept)"}})
+def get_latest(worker: WorkerDep, camera: str | None = None) -> Any:
     _camera(worker, camera)
-    results = [worker.latest[camera]] if camera in worker.latest else list(worker.latest.values())
-    if not results:
+    result = worker.current(camera)
+    if result is None:
         raise ApiError(Reason.no_frame, "no frame has been measured yet; see /health")
-    return max(results, key=lambda r: r.get("t_exposure_host_ns", 0))
+    if not result.get("ok") and result.get("reason") in _DEVICE_REASONS:
+        return JSONResponse(result, status_code=_STATUS[result["reason"]])
+    return result
 
 
 @router.get("/frames/latest", response_class=Response, summary="The newest frame with its measured targets drawn",
@@ -89,19 +103,23 @@ async def ws_poses(
     targets: bool = True,
 ) -> None:
     """Every result as a JSON text message; ``max_rate_hz`` decimates; ``targets=false`` leaves the
-    per-target list out; slow clients lose the oldest messages."""
+    per-target list out; slow clients lose the oldest messages, and a client that reads nothing for
+    ``server.ws_stall_timeout_s`` is disconnected (close code 1008). The first message is the newest
+    result with its ``age_s`` (``"stale": true`` when it is no longer current); during a camera
+    outage an outage result arrives once a second."""
     hub = websocket.app.state.hub
+    worker = websocket.app.state.worker
     await websocket.accept()
     client = hub.add(camera, max_rate_hz, targets)  # subscribe first, then backfill: no result falls between
     try:
-        worker = websocket.app.state.worker
-        latest = [r for n, r in list(worker.latest.items()) if camera in (None, n)]
-        for r in latest:
-            await websocket.send_json(r if targets else {k: v for k, v in r.items() if k != "targets"})
+        current = worker.current(camera)
+        if current is not None:
+            await hub.send(websocket, client, dumps({k: v for k, v in current.items() if targets or k != "targets"}))
         while True:
             text = await client.queue.get()
-            await websocket.send_text(text)
-            client.sent += 1
+            await hub.send(websocket, client, text)
+    except StalledClient as e:
+        worker.event("warning", "websocket_client_stalled", str(e))
     except (WebSocketDisconnect, RuntimeError):
         pass  # a client going away is normal
     finally:

@@ -349,7 +349,9 @@
     const cam = r.camera || "";
     const now = Date.now();
     state.latest.set(cam, r);
-    state.received.set(cam, now);
+    // the age shown is that of the newest measured frame: an outage result (no seq) says what is
+    // wrong now but is no new measurement; a backfilled result comes with its age
+    if (r.seq !== undefined && r.seq !== null) state.received.set(cam, now - (isNum(r.age_s) ? r.age_s * 1000 : 0));
     if (r.ok) state.lastOk.set(cam, r);
     state.series.push({
       t: now,

@@ -10,7 +10,9 @@ It behaves like a GigE Vision camera in the ways the worker depends on:
   ends, so time alignment has real work to do;
 - exposure, gain, bit depth and ROI change the rendered image; the ring light is
   lit only while the strobe output is configured to fire during the exposure;
-- ``unplug()`` / ``plug()`` inject a lost link (``DriverDisconnected``).
+- ``unplug()`` / ``plug()`` inject a lost link (``DriverDisconnected``); ``stall()`` keeps the
+  link but delivers no frame (a stuck stream: only timeouts); ``garble()`` delivers frames of
+  noise (a broken sensor or a wrong pixel format); ``plug()`` ends every fault.
 
 What it does not model: motion blur within the exposure, rolling shutter,
 packet loss, buffer underruns, and how long rendering takes (a frame is
@@ -88,6 +90,8 @@ class SimCamera:
         self._settings = CameraSettings(strobe=None)
         self._open = False
         self._plugged = True
+        self._stalled = False
+        self._garbled = False
         self._next_seq = 0
         self._last_exposure_start_ns: int | None = None
         self._triggers: list[int] = []
@@ -144,6 +148,9 @@ class SimCamera:
     def fetch(self, timeout_s: float) -> Frame:
         self._require_link()
         deadline = time.monotonic_ns() + int(timeout_s * 1e9)
+        if self._stalled:
+            time.sleep(timeout_s)
+            raise DriverTimeout(f"no frame from simulated camera {self._serial} within {timeout_s:.3f} s (stalled)")
         t_start_ns = self._next_exposure_start(deadline)
         if t_start_ns is None:
             raise DriverTimeout(f"no frame from simulated camera {self._serial} within {timeout_s:.3f} s")
@@ -162,6 +169,8 @@ class SimCamera:
             rendered = render_frame(self._cell.camera, self._cell.field, self._T_field_camera(t_cell_s), s, self._rng)
         self._render_s = min(0.5, 0.8 * self._render_s + 0.2 * (time.perf_counter() - t_render))
         image = rendered.image
+        if self._garbled:  # noise over the whole range: nothing in it may be measured as a target
+            image = self._rng.integers(0, np.iinfo(image.dtype).max, image.shape, dtype=image.dtype, endpoint=True)
         if self._settings.roi is not None:
             x, y, w, h = self._settings.roi
             image = np.ascontiguousarray(image[y : y + h, x : x + w])
@@ -221,6 +230,13 @@ class SimCamera:
 
     def plug(self) -> None:
         self._plugged = True
+        self._stalled = self._garbled = False
+
+    def stall(self) -> None:
+        self._stalled = True
+
+    def garble(self) -> None:
+        self._garbled = True
 
     # --- internals ----------------------------------------------------------------------------
 

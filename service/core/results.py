@@ -29,6 +29,8 @@ class Reason(StrEnum):
     poor_motion = "poor_motion"
     initializing = "initializing"
     timeout = "timeout"
+    stale = "stale"  # the newest result is older than a few frame periods: nothing current to serve
+    storage_unavailable = "storage_unavailable"  # measured, but not committed: not acknowledged
 
 
 class SolveError(Exception):
