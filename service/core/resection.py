@@ -6,6 +6,10 @@ Fischler & Bolles) gives the projection centre in front of the plane, and the
 rotation follows from the known centre (Kraus) as the one that best aligns the
 field rays from the centre with the image rays. A non-planar field's centre comes
 from a DLT on ideal coordinates (OpenCV's P3P over all triples for 4-5 points).
+When that start fails or its adjustment is not confirmed (one target off the plane of
+the others leaves the DLT underdetermined), every other closed form that applies is
+adjusted in turn: the homography of the coplanar majority, the DLT, P3P with a
+consensus (:func:`~service.core.resection_closed_form.fallback_starts`).
 :func:`resect` then adjusts the collinearity equations over all points by
 least squares (Levenberg-Marquardt on an analytic Jacobian), rejects gross errors
 by iterative data snooping, and returns pose, covariance, sigma0 and residuals.
@@ -32,9 +36,12 @@ from service.core.camera_model import BrownFraser
 from service.core.frames import check_T
 from service.core.geometry_kernels import is_rigid_kernel, whitened_ideal_kernel
 from service.core.resection_closed_form import (
+    CONFIRM_MAX_REJECTED,
+    CONSENSUS_PX,
     check_geometry,
     check_observations,
     closed_form_ideal,
+    fallback_starts,
     resect_closed_form,
 )
 from service.core.resection_kernel import (
@@ -145,45 +152,50 @@ def _check_pose(T_field_camera: ArrayLike) -> Array:
 # Both quantiles have closed forms.
 
 
-def _raise(status: int, n: int, min_keep: int, max_iter: int, max_sigma_px: float, inliers: NDArray[np.bool_],
-           n_in: int, sigma0: float, behind: NDArray[np.bool_]) -> None:
+def _error(status: int, n: int, min_keep: int, max_iter: int, max_sigma_px: float, inliers: NDArray[np.bool_],
+           n_in: int, sigma0: float, behind: NDArray[np.bool_]) -> SolveError:
     """The ``SolveError`` of a failed :func:`~service.core.resection_kernel.resect_kernel`."""
     if status == START_BEHIND:
-        raise SolveError(
+        return SolveError(
             Reason.behind_camera,
             "The start pose puts a target in the camera's focal plane (Z = 0).",
         )
     if status == NORMAL_SINGULAR:
-        raise SolveError(Reason.degenerate_geometry, "The resection's normal equations are singular.")
+        return SolveError(Reason.degenerate_geometry, "The resection's normal equations are singular.")
     if status == NO_DESCENT:
-        raise SolveError(Reason.no_convergence, "The resection found no step that lowers its cost.")
+        return SolveError(Reason.no_convergence, "The resection found no step that lowers its cost.")
     if status == DEGENERATE:
-        raise SolveError(Reason.degenerate_geometry, "The points do not determine the camera pose.")
+        return SolveError(Reason.degenerate_geometry, "The points do not determine the camera pose.")
     if status == TOO_MANY_GROSS:
-        raise SolveError(
+        return SolveError(
             Reason.too_few_targets,
             f"Too many gross errors: rejecting another point would leave fewer "
             f"than {min_keep} of {n}.",
             {"rejected": np.flatnonzero(~inliers).tolist(), "n_targets": n},
         )
     if status == NO_CONVERGENCE:
-        raise SolveError(
+        return SolveError(
             Reason.no_convergence, f"The resection did not converge in {max_iter} iterations."
         )
     if status == TOO_FEW_AGREE:
-        raise SolveError(
+        return SolveError(
             Reason.too_few_targets,
             f"Too few targets agree: after rejecting {n - n_in} of {n}, the rest still fit "
             f"with sigma0 = {sigma0:.2f} px, more than max_sigma_px = {max_sigma_px:g} px.",
             {"rejected": np.flatnonzero(~inliers).tolist(), "sigma0_px": sigma0, "n_targets": n},
         )
     if status == INLIER_BEHIND:
-        raise SolveError(
+        return SolveError(
             Reason.behind_camera,
             f"{int(np.sum(behind))} of {n_in} targets lie behind the adjusted camera.",
             {"behind": np.flatnonzero(behind).tolist()},
         )
     raise AssertionError(f"unknown resection status {status}")
+
+
+def _confirmed(out: tuple, n: int) -> bool:
+    """Whether an adjustment without a given start stands: it succeeded and rejected few points."""
+    return out[0] == OK and n - out[4] <= CONFIRM_MAX_REJECTED * n
 
 
 def resect(
@@ -209,7 +221,10 @@ def resect(
     uv : (N, 2) float, px
         Their measured pixel coordinates.
     T_field_camera_init : (4, 4) float, optional
-        Start pose (e.g. the previous frame's); by default :func:`resect_closed_form`.
+        Start pose (e.g. the previous frame's), followed or refused. By default the closed
+        form; if its adjustment fails or rejects more than ``CONFIRM_MAX_REJECTED`` of the
+        points, the other closed forms' starts are adjusted until one is confirmed (else
+        the successful one with the most inliers, then the lowest sigma0, is kept).
     sigma_px : float, optional
         A-priori sigma of an image coordinate, px. Given, it scales the covariance
         and data snooping is Baarda's w-test; otherwise the covariance is scaled by
@@ -251,17 +266,52 @@ def resect(
         q, (camera.width - 1) / 2.0, (camera.height - 1) / 2.0, *map(float, camera.pixel_size_mm), float(camera.x0_mm),
         float(camera.y0_mm), *map(float, (camera.K1, camera.K2, camera.K3, camera.P1, camera.P2, camera.B1, camera.B2)))
     spread = check_geometry(p, xy)
-    if T_field_camera_init is None:
-        T = closed_form_ideal(p, xy, c, spread)
-    else:
-        T = _check_pose(T_field_camera_init)
     nan = np.nan
-    status, T, n_iter, inliers, n_in, r_all, cov, sig, sigma0, rms, omega, ss0, behind = resect_kernel(
-        T, p, xy, W, c, int(max_iter), bool(reject_outliers), nan if sigma_px is None else float(sigma_px),
-        float(max_sigma_px), nan if critical_value is None else float(critical_value), SNOOPING_ALPHA,
-        SNOOPING_SIGMA_FLOOR_PX)
-    if status != OK:
-        _raise(status, n, max(4, -(-n // 2)), max_iter, max_sigma_px, inliers, n_in, sigma0, behind)
+
+    def adjust(T: Array) -> tuple:
+        return resect_kernel(
+            T, p, xy, W, c, int(max_iter), bool(reject_outliers), nan if sigma_px is None else float(sigma_px),
+            float(max_sigma_px), nan if critical_value is None else float(critical_value), SNOOPING_ALPHA,
+            SNOOPING_SIGMA_FLOOR_PX)
+
+    def error(out: tuple) -> SolveError:
+        return _error(out[0], n, max(4, -(-n // 2)), max_iter, max_sigma_px, out[3], out[4], out[8], out[12])
+
+    if T_field_camera_init is not None:  # the caller's start: followed or refused, never replaced
+        out = adjust(_check_pose(T_field_camera_init))
+        if out[0] != OK:
+            raise error(out)
+        return _result(out)
+    # Without a start: the usual closed form, and only when its adjustment is not confirmed every
+    # other one that applies, so that the common frame pays for one start and one adjustment.
+    try:
+        out = adjust(closed_form_ideal(p, xy, c, spread))
+    except SolveError as e:
+        first_error, start_failed, best = e, True, None
+    else:
+        if _confirmed(out, n):
+            return _result(out)
+        first_error, start_failed = error(out), out[0] == START_BEHIND
+        best = out if out[0] == OK else None
+    for T in fallback_starts(p, xy, c, CONSENSUS_PX * camera.mean_pixel_size_mm):
+        cand = adjust(T)
+        if _confirmed(cand, n):
+            return _result(cand)
+        if cand[0] == OK:
+            # unconfirmed ones: the most inliers, then the smallest sigma0
+            if best is None or (cand[4], -cand[8]) > (best[4], -best[8]):
+                best = cand
+        elif start_failed and cand[0] != START_BEHIND:
+            # a start most points agreed with, adjusted: its verdict is the data's, not the start's
+            first_error, start_failed = error(cand), False
+    if best is None:
+        raise first_error
+    return _result(best)
+
+
+def _result(out: tuple) -> ResectionResult:
+    """The :class:`ResectionResult` of a successful :func:`~service.core.resection_kernel.resect_kernel`."""
+    _, T, n_iter, inliers, _, r_all, cov, sig, sigma0, rms, omega, ss0, _ = out
     return ResectionResult(
         T_field_camera=T,
         covariance=cov,
