@@ -453,6 +453,59 @@ def read_handeye_samples(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.n
     return np.array(A), np.array(B)
 
 
+# -- rig pairing: which images were exposed together --------------------------
+
+
+def rig_pairs_from_csv(text: str, n_cameras: int, source: str = "pairs.csv") -> list[list[str]]:
+    """Rows of ``n_cameras`` image paths, one row per epoch (camera 0's image first); ``#`` comments
+    and blank rows are skipped. Each row must name exactly one image per camera."""
+    rows = []
+    for k, row in enumerate(csv.reader(io.StringIO(text))):
+        cells = [c.strip() for c in row]
+        if not any(cells) or cells[0].startswith("#"):
+            continue
+        if len(cells) != n_cameras or not all(cells):
+            raise FormatError(f"{source}: row {k + 1} names {len([c for c in cells if c])} images, but the rig has "
+                              f"{n_cameras} cameras (one image per camera, comma-separated)")
+        rows.append(cells)
+    if not rows:
+        raise FormatError(f"{source}: no pairs")
+    return rows
+
+
+def read_rig_pairs(path: str | os.PathLike[str], n_cameras: int) -> list[list[str]]:
+    return rig_pairs_from_csv(_read_text(path), n_cameras, str(path))
+
+
+def image_timestamps_from_csv(text: str, source: str = "timestamps.csv") -> dict[str, int]:
+    """Exposure times of a camera folder's images: a header ``name,t_ns`` (whole nanoseconds) or
+    ``name,t_s`` (seconds), then one row per image file name; -> {file name: t_ns}. Any clock will do,
+    as long as every camera's is the same one."""
+    reader = csv.reader(io.StringIO(text))
+    header = [c.strip().lower() for c in next(reader, [])]
+    if len(header) != 2 or header[0] != "name" or header[1] not in ("t_ns", "t_s"):
+        raise FormatError(f"{source}: the first row must be the header 'name,t_ns' or 'name,t_s'")
+    out: dict[str, int] = {}
+    for k, row in enumerate(reader):
+        cells = [c.strip() for c in row]
+        if not any(cells) or cells[0].startswith("#"):
+            continue
+        try:
+            if len(cells) != 2:
+                raise ValueError
+            t = int(cells[1]) if header[1] == "t_ns" else round(float(cells[1]) * 1e9)
+        except (ValueError, OverflowError):
+            raise FormatError(f"{source}: row {k + 2} is not 'name,{header[1]}'") from None
+        if cells[0] in out:
+            raise FormatError(f"{source}: image {cells[0]!r} has two timestamps")
+        out[cells[0]] = t
+    return out
+
+
+def read_image_timestamps(path: str | os.PathLike[str]) -> dict[str, int]:
+    return image_timestamps_from_csv(_read_text(path), str(path))
+
+
 # -- images ------------------------------------------------------------------
 
 
