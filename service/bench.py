@@ -17,7 +17,7 @@ def _accuracy(args: argparse.Namespace) -> str:
 def _speed(args: argparse.Namespace) -> str:
     from service import bench_speed
 
-    return bench_speed.run(n_frames=args.frames, seed=args.seed)
+    return bench_speed.run(n_frames=args.frames, seed=args.seed, conditions_frames=args.condition_frames)
 
 
 def _faults(args: argparse.Namespace) -> str:

@@ -362,13 +362,24 @@ def build_parser() -> argparse.ArgumentParser:
         help="relative orientation of rigidly mounted cameras: rig.json",
         description="Calibrates the poses of cameras 1..K-1 in camera 0's frame (T_master_camera, for forward "
         "intersection) from simultaneous images of a target field: a bundle adjustment with the rig constraint. "
-        "Images: one folder per camera, matched by file name (or sorted order).",
+        "Images: one folder per camera, paired by file name, else by the frame number in the names (--pair-by), "
+        "or listed in --pairs; an image without a partner or an ambiguous pair is refused. sigma: max(formal, "
+        "leave-one-epoch-out jackknife), both in rig.json.",
     )
     cr.add_argument("--field", required=True, help="field.json, field.csv or an AICON point list .txt (mm)")
     cr.add_argument("--camera", nargs="+", required=True, metavar="CAMERA_JSON",
                     help="camera.json of each camera, master first")
     cr.add_argument("--images", nargs="+", metavar="DIR", help="one folder of images per camera, same order")
     cr.add_argument("--observations", help="OBS.json whose images carry 'camera' (index) and 'epoch'")
+    cr.add_argument("--pairs", metavar="PAIRS_CSV",
+                    help="instead of --images: one row per epoch, one image path per camera (relative to the file)")
+    cr.add_argument("--pair-by", choices=["auto", "name", "frame", "time"], default="auto",
+                    help="pair --images by file name, frame number in the name, or time (a timestamps.csv "
+                    "'name,t_ns' or 'name,t_s' in each folder); auto: name, else frame number")
+    cr.add_argument("--time-tolerance-s", type=float, default=None,
+                    help="largest exposure-time difference of a pair for --pair-by time (default 0.005)")
+    cr.add_argument("--drop-unpaired", action="store_true",
+                    help="leave out images without a partner (said in the warnings) instead of refusing")
     cr.add_argument("-o", "--output", required=True, help="rig.json to write")
     cr.add_argument("--free-interior", help="interior parameters to refine too, e.g. c,x0,y0 (default none)")
     cr.add_argument("--survey-field", action="store_true",
@@ -476,6 +487,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="sections to run (default: all): accuracy, speed, faults",
     )
     b.add_argument("--frames", type=int, default=120, help="rendered frames for the speed section")
+    b.add_argument("--condition-frames", type=int, default=30,
+                   help="frames per row of the speed section's condition matrix (0: leave it out)")
     b.add_argument("--trials", type=int, default=500, help="Monte-Carlo trials for the accuracy tables")
     b.add_argument("--seed", type=int, default=1)
     b.add_argument("--rounds", type=int, default=5, help="repetitions of each fault for the faults section")

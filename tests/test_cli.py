@@ -125,6 +125,22 @@ def test_bench_accuracy_prints_both_paper_tables():
     assert r.stdout.count("| resection |") == 2 and r.stdout.count("| intersection |") == 2
 
 
+@pytest.mark.slow
+def test_bench_speed_reports_every_condition_of_the_matrix_beside_the_peer():
+    from service.bench_conditions import CONDITIONS
+
+    r = run("bench", "speed", "--frames", "3", "--condition-frames", "2")
+    assert r.returncode == 0, r.stderr
+    rows = [line for line in r.stdout.splitlines() if line.startswith("| ") and "ms" not in line]
+    names = [line.split("|")[1].strip() for line in rows]
+    for cond in CONDITIONS:
+        assert cond.name in names, (cond.name, r.stdout)
+    for line in rows:
+        if line.split("|")[1].strip() in {c.name for c in CONDITIONS}:
+            cells = [c.strip() for c in line.split("|")[2:-1]]
+            assert len(cells) == 9 and all(c != "nan" for c in (cells[0], cells[1], cells[5])), line
+
+
 def test_unknown_verb_is_a_usage_error():
     r = run("frobnicate")
     assert r.returncode == 2 and "invalid choice" in r.stderr
