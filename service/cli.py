@@ -403,12 +403,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ring code of the coded targets: posecell's own 12-bit targets (default) or "
                    "AICON-style 14-bit targets as MicMac MMVII reads them (field: an AICON point list .txt)")
     m.add_argument("--min-contrast-dn", type=float, default=None,
-                   help="smallest target contrast above the local background, 8-bit DN (default 20; "
-                   "raise it for flash-lit 8-bit images with a textured background)")
+                   help="smallest target contrast above the local background, 8-bit DN (default 20, and "
+                   "never less than 8 times the noise the detector measures in the image)")
     m.add_argument("--min-area-px", type=int, default=None, help="smallest blob area, px (default 6)")
     m.add_argument("--max-area-px", type=int, default=None,
-                   help="largest blob area, px (default 5000); lower it to ignore bright patches "
-                   "(stickers, labels) bigger than any target")
+                   help="largest blob area, px (default 5000); lower it for images where bright patches "
+                   "bigger than any target (stickers, labels) are many")
     m.add_argument("--max-sigma0-px", type=float, default=None,
                    help="largest accepted sigma0 of the final adjustment, px (default 0.5)")
     m.add_argument("images", nargs="+", metavar="IMAGE", help="PNG, TIFF or PGM, 8 or 16 bit")

@@ -17,7 +17,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import repeat
 
 import numpy as np
@@ -110,6 +110,9 @@ class MeasureSettings:
     roi_prediction_error_px: float = 4.0  # how far a target may move from its constant-velocity prediction
     max_sigma0_px: float = 0.5
     code_family: CodeFamily = POSECELL12  # the coded targets' ring code (codes.AICON14 for AICON plates)
+    # nearest and farthest camera-to-target distance, mm: if given, blobs smaller or larger than any
+    # target of the field can appear there are not measured (:func:`detect_settings_for_range`)
+    range_mm: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -125,6 +128,46 @@ class Outcome:
 
 #: ROI windows about precise predictions allow this fraction of ``roi_prediction_error_px``
 TIGHT_SLACK = 0.25
+#: A target's image at the far end of the range is at least this share of its head-on disk (seen at up
+#: to 75 deg, thresholded); at the near end at most this many times it (blur and the threshold's growth)
+MIN_AREA_SHARE, MAX_AREA_FACTOR = 0.25, 1.5
+
+
+def detect_settings_for_range(detect: DetectSettings, field: Field, camera: BrownFraser,
+                              range_mm: tuple[float, float]) -> DetectSettings:
+    """``detect`` with its area limits narrowed to the targets ``field`` can show at ``range_mm``
+    (nearest, farthest; mm) through ``camera``: the smallest disk at the far end seen obliquely,
+    the largest at the near end plus 2 px of blur (unknown diameters: 10 mm coded, 6 mm uncoded).
+    Narrower limits reject stickers, labels and specks before they are measured, and keep the
+    search for ring pieces short."""
+    near, far = (float(v) for v in range_mm)
+    if not 0 < near <= far:
+        raise ValueError(f"range_mm must be (nearest, farthest) with 0 < nearest <= farthest, got {range_mm}")
+    d = np.where(np.isfinite(field.diameters_mm), field.diameters_mm, np.where(field.is_coded, 10.0, 6.0))
+    px = camera.c_mm / camera.mean_pixel_size_mm  # image radius px per mm of disk radius at 1 mm range
+    r_small, r_big = 0.5 * float(d.min()) * px / far, 0.5 * float(d.max()) * px / near
+    min_area = max(3, int(MIN_AREA_SHARE * np.pi * r_small**2))
+    max_area = int(np.ceil(MAX_AREA_FACTOR * np.pi * (r_big + 2.0) ** 2))
+    return replace(detect, min_area_px=max(detect.min_area_px, min_area),
+                   max_area_px=max(min(detect.max_area_px, max_area), min_area + 1))
+
+
+def _nominal(camera: BrownFraser) -> bool:
+    """True for a camera with no calibration: no sigma (``posecell calibrate camera`` writes one)
+    and no correction terms at all (a camera.json written from the data sheet)."""
+    return camera.sigma is None and not np.any(camera.params()[1:])
+
+
+def _with_calibration_hint(e: SolveError, camera: BrownFraser) -> SolveError:
+    """``e`` with a sentence saying the camera is not calibrated, when that is the likely cause: the
+    targets disagree with every pose (sigma0, gross errors), as an uncorrected lens's distortion makes
+    them do (a 24 mm lens: 0.7 px against the 0.5 px limit)."""
+    if not _nominal(camera) or not ({"sigma0_px", "rejected"} & set(e.details)):
+        return e
+    return SolveError(e.reason, f"{e.message.rstrip('.')}. The camera is not calibrated (its camera.json has no "
+                      "distortion terms and no sigma), and an uncorrected lens alone does this: run "
+                      "`posecell calibrate camera` on images of the field and measure with the camera.json it "
+                      "writes.", e.details)
 
 
 class _Clock:
@@ -145,6 +188,10 @@ class FrameMeasurer:
         self.camera = camera
         self.field = field
         self.settings = settings or MeasureSettings()
+        if self.settings.range_mm is not None:
+            self.settings = replace(self.settings, detect=detect_settings_for_range(
+                self.settings.detect, field, camera, self.settings.range_mm))
+        self._roi_detect = self.settings.detect  # with the last full frame's noise, for the ROI windows' levels
         self._history: deque[PoseSample] = deque(maxlen=2)
         self._mask: NDArray[np.uint8] | None = None  # detect_blobs' scratch, reused frame after frame
         self._ids = np.array(field.ids, dtype=object)  # ids by field row, for fancy indexing
@@ -210,6 +257,7 @@ class FrameMeasurer:
                 Reason.no_convergence,
                 f"the targets disagree with the pose by {res.sigma0_px:.2f} px (sigma0), "
                 f"more than {s.max_sigma0_px} px: check the camera calibration and the field",
+                {"sigma0_px": res.sigma0_px},
             )
         result = pose_result_from_resection(res, self.field, self._ids[rows].tolist(), uv, rows)
         clock.lap("result")
@@ -227,10 +275,13 @@ class FrameMeasurer:
             return Outcome(Failure.from_error(e), "full", clock.ms)
         clock.lap("detect")
         counts = rejections.counts
+        # rounded: the detector caches its constants per settings
+        self._roi_detect = replace(s.detect, noise_dn=round(rejections.work.noise_dn, 1))
         try:
             result = self._identify_and_resect(image, blobs, clock)
         except SolveError as e:
-            return Outcome(Failure.from_error(e), "full", clock.ms, len(blobs), counts)
+            return Outcome(Failure.from_error(_with_calibration_hint(e, self.camera)), "full", clock.ms,
+                           len(blobs), counts)
         return Outcome(result, "full", clock.ms, len(blobs), counts)
 
     def _identify_and_resect(self, image: NDArray[np.generic], blobs: Blobs, clock: _Clock) -> PoseResult:
@@ -292,7 +343,7 @@ class FrameMeasurer:
             uncoded = self.field.codes[rows] < 0
             half = self._window_half_size(rows[uncoded], depth[uncoded], slack)
             try:
-                blobs, found = measure_windows(image, uv_pred[uncoded], half, s.detect)
+                blobs, found = measure_windows(image, uv_pred[uncoded], half, self._roi_detect)
                 ok = found >= 0
                 if ok.sum() < max(s.min_targets, s.roi_min_fraction * uncoded.sum()):
                     return None
@@ -324,7 +375,7 @@ class FrameMeasurer:
         s = self.settings
         half = self._window_half_size(rows, depth, slack)
         try:
-            blobs, found = measure_windows(image, uv_pred, half, s.detect)
+            blobs, found = measure_windows(image, uv_pred, half, self._roi_detect)
         except (ValueError, SolveError):
             return None
         # compiled: as array expressions the gathering and the check were 2 % of an ROI frame

@@ -105,17 +105,15 @@ def _axes(uu, uv, vv):
 
 
 @njit(cache=True, error_model="numpy")
-def classify_kernel(box, area_px, poly_area, mu, reach, width, height, border, min_area, max_area, max_aspect,
-                    min_polygon_fill, ring_outer):
+def classify_kernel(box, area_px, poly_area, mu, width, height, border, min_area, max_area, max_aspect,
+                    min_polygon_fill):
     """Per contour (C): semi-major axis a (px) and the classes cut (by the image border), small, big,
     long (b < a / max_aspect), disk_like (not long, and its polygon fills its moments' ellipse) and
-    host (a disk-like candidate whose coded ring may be around it); and the radius (px) within
-    which ring pieces and crowding neighbours are looked for."""
+    host (a disk-like candidate whose coded ring may be around it)."""
     nc = area_px.size
     a = np.empty(nc)
     cut, small, big = np.empty(nc, np.bool_), np.empty(nc, np.bool_), np.empty(nc, np.bool_)
     long, disk_like, host = np.empty(nc, np.bool_), np.empty(nc, np.bool_), np.empty(nc, np.bool_)
-    a_host, reach_host, reach_all = -np.inf, -1, -1
     for c in range(nc):
         ac, bc = _axes(mu[c, 0], mu[c, 1], mu[c, 2])
         a[c] = ac
@@ -125,14 +123,7 @@ def classify_kernel(box, area_px, poly_area, mu, reach, width, height, border, m
         long[c] = not (bc * max_aspect >= ac)
         disk_like[c] = not long[c] and poly_area[c] >= min_polygon_fill * np.pi * ac * bc
         host[c] = disk_like[c] and not small[c] and not big[c]  # a disk cut by the border still marks its ring
-        reach_all = max(reach_all, reach[c])
-        if host[c]:
-            a_host = _maximum(a_host, ac)
-            reach_host = max(reach_host, reach[c])
-    r_px = 0.0
-    if reach_host >= 0:  # ring pieces lie within RING_OUTER; windows may reach 1.25 times their need
-        r_px = max((ring_outer + 0.6) * a_host, 1.25 * float(reach_host) + 6.0 + float(reach_all))
-    return a, cut, small, big, long, disk_like, host, r_px
+    return a, cut, small, big, long, disk_like, host
 
 
 @njit(cache=True, error_model="numpy")
@@ -180,6 +171,6 @@ def warm_up() -> None:
     pts = np.array([[0, 0], [2, 0], [2, 2], [0, 2]], dtype=np.int32)
     box, area_px, poly_area, centre, mu, box_centre, reach = contour_stats_kernel(
         pts, np.array([0], dtype=np.intp), np.array([4], dtype=np.intp))
-    classify_kernel(box, area_px, poly_area, mu, reach, 10, 10, 2, 6.0, 5000.0, 4.0, 0.9, 3.2)
+    classify_kernel(box, area_px, poly_area, mu, 10, 10, 2, 6.0, 5000.0, 4.0, 0.9)
     windows_kernel(box_centre, reach, mu, centre, np.array([0], dtype=np.intp), np.array([np.inf]), 10, 10, 0,
                    np.array([4, 6], dtype=np.intp), 2)

@@ -5,6 +5,11 @@ each blob's window comes to another blob; :func:`mask_windows_kernel` sets other
 blobs to the background in the crowded windows before they are measured. Written
 as loops: as array expressions over the pairs and the windows (numpy passes over a
 few hundred small items) they took 0.9 ms of a 10 ms frame, now 0.25 ms.
+
+The neighbours are searched from the candidates only (the blobs to be measured and
+the hosts of rings), each within its own radius, through a grid of the contours'
+boxes: one search radius for all (the largest blob's) made a frame with a bright
+sticker, or with thousands of noise specks, cost millions of pairs.
 """
 
 from __future__ import annotations
@@ -14,75 +19,111 @@ from numba import njit
 
 
 @njit(cache=True, error_model="numpy")
-def _pairs_within(centre, r):
-    """All unordered pairs (i < j) of points ``centre`` (n, 2) at most ``r`` apart, through a grid
-    of r-sized cells (the full frame's ~300 blobs have a few neighbours each)."""
-    n = centre.shape[0]
-    cell = max(r, 1.0)
-    gx = np.empty(n, dtype=np.intp)
-    gy = np.empty(n, dtype=np.intp)
-    x0, y0 = np.inf, np.inf
-    for i in range(n):
-        x0, y0 = min(x0, centre[i, 0]), min(y0, centre[i, 1])
-    nx = ny = 1
-    for i in range(n):
-        gx[i], gy[i] = int((centre[i, 0] - x0) / cell), int((centre[i, 1] - y0) / cell)
-        nx, ny = max(nx, gx[i] + 1), max(ny, gy[i] + 1)
-    # counting sort of the points by cell
+def _box_grid(box, cell, width, height):
+    """Every contour listed in each ``cell`` x ``cell`` px grid cell its box (C, 4) overlaps
+    (counting sort): (nx, ny, start (nx * ny + 1,), members). A contour whose box spans
+    several cells is in each of them, so a query finds it from whichever side it comes."""
+    nx, ny = max(1, -(-width // cell)), max(1, -(-height // cell))
+    n = box.shape[0]
     start = np.zeros(nx * ny + 1, dtype=np.intp)
-    for i in range(n):
-        start[gy[i] * nx + gx[i] + 1] += 1
+    for c in range(n):
+        for gy in range(min(max(box[c, 1] // cell, 0), ny - 1), min(max(box[c, 3] // cell, 0), ny - 1) + 1):
+            for gx in range(min(max(box[c, 0] // cell, 0), nx - 1), min(max(box[c, 2] // cell, 0), nx - 1) + 1):
+                start[gy * nx + gx + 1] += 1
     for k in range(nx * ny):
         start[k + 1] += start[k]
-    order, fill = np.empty(n, dtype=np.intp), start[:-1].copy()
-    for i in range(n):
-        k = gy[i] * nx + gx[i]
-        order[fill[k]] = i
-        fill[k] += 1
-    r2 = r * r
-    # twice over the cells: count, then fill (growing the arrays in the loop costs more)
-    pi, pj = np.empty(0, dtype=np.intp), np.empty(0, dtype=np.intp)
-    m = 0
-    for fill_in in (False, True):
-        if fill_in:
-            pi, pj = np.empty(m, dtype=np.intp), np.empty(m, dtype=np.intp)
-            m = 0
-        for i in range(n):
-            for cy in range(max(gy[i] - 1, 0), min(gy[i] + 2, ny)):
-                for cx in range(max(gx[i] - 1, 0), min(gx[i] + 2, nx)):
-                    k = cy * nx + cx
-                    for q in range(start[k], start[k + 1]):
-                        j = order[q]
-                        if j > i:
-                            dx, dy = centre[j, 0] - centre[i, 0], centre[j, 1] - centre[i, 1]
-                            if dx * dx + dy * dy <= r2:
-                                if fill_in:
-                                    pi[m], pj[m] = i, j
-                                m += 1
-    return pi[:m], pj[:m]
+    members, fill = np.empty(start[nx * ny], dtype=np.intp), start[:-1].copy()
+    for c in range(n):
+        for gy in range(min(max(box[c, 1] // cell, 0), ny - 1), min(max(box[c, 3] // cell, 0), ny - 1) + 1):
+            for gx in range(min(max(box[c, 0] // cell, 0), nx - 1), min(max(box[c, 2] // cell, 0), nx - 1) + 1):
+                k = gy * nx + gx
+                members[fill[k]] = c
+                fill[k] += 1
+    return nx, ny, start, members
 
 
 @njit(cache=True, error_model="numpy")
-def neighbours_kernel(centre, mu, box_centre, reach, host, disk_like, r_px, ring_inner, ring_outer):
-    """``detect._neighbours``: per blob the host whose coded ring it is a piece of (-1: none) and
-    the distance from its box centre to the nearest thresholded pixel of another blob.
+def _pairs_near(box, centre, box_centre, reach, a, host, query, ring_outer, width, height):
+    """Ordered pairs (i, j): ``i`` a query (a candidate to measure or a host), ``j`` any other
+    contour whose box comes within ``R_i`` of i's centre, where ``R_i`` holds i's ring (a host's
+    pieces lie within ``(ring_outer + 0.6) a_i``) and i's window (at most 1.25 times the blob's
+    reach plus the margins, about the box centre). Through a grid of boxes with cells of the
+    median query radius, so the work is the queries times the contours near each, never all
+    pairs. Returns (pi, pj, visits): visits counts every contour looked at (the work)."""
+    nq = 0
+    for c in range(query.size):
+        nq += query[c]
+    radius = np.zeros(query.size)
+    rq = np.empty(max(nq, 1))
+    m = 0
+    for c in range(query.size):
+        if query[c]:
+            dx, dy = box_centre[c, 0] - centre[c, 0], box_centre[c, 1] - centre[c, 1]
+            r = 1.25 * reach[c] + 6.0 + np.sqrt(dx * dx + dy * dy)
+            if host[c]:
+                r = max(r, (ring_outer + 0.6) * a[c])
+            radius[c] = r
+            rq[m] = r
+            m += 1
+    cell = max(8, int(np.median(rq[:max(nq, 1)]))) if nq > 0 else 8
+    nx, ny, start, members = _box_grid(box, cell, width, height)
+    stamp = np.full(query.size, -1, dtype=np.intp)
+    cap = max(16, 8 * nq)
+    pi, pj = np.empty(cap, dtype=np.intp), np.empty(cap, dtype=np.intp)
+    m, visits = 0, 0
+    for i in range(query.size):
+        if not query[i]:
+            continue
+        r = radius[i]
+        x0, x1 = int(np.floor((centre[i, 0] - r) / cell)), int(np.floor((centre[i, 0] + r) / cell))
+        y0, y1 = int(np.floor((centre[i, 1] - r) / cell)), int(np.floor((centre[i, 1] + r) / cell))
+        for gy in range(max(y0, 0), min(y1, ny - 1) + 1):
+            for gx in range(max(x0, 0), min(x1, nx - 1) + 1):
+                k = gy * nx + gx
+                for q in range(start[k], start[k + 1]):
+                    j = members[q]
+                    visits += 1
+                    if j == i or stamp[j] == i:
+                        continue
+                    stamp[j] = i
+                    # the box within r of the centre (Chebyshev): its pixels may be
+                    if (box[j, 0] - r > centre[i, 0] or box[j, 2] + r < centre[i, 0]
+                            or box[j, 1] - r > centre[i, 1] or box[j, 3] + r < centre[i, 1]):
+                        continue
+                    if m == cap:
+                        cap *= 2
+                        ni, nj = np.empty(cap, dtype=np.intp), np.empty(cap, dtype=np.intp)
+                        ni[:m], nj[:m] = pi[:m], pj[:m]
+                        pi, pj = ni, nj
+                    pi[m], pj[m] = i, j
+                    m += 1
+    return pi[:m], pj[:m], visits
+
+
+@njit(cache=True, error_model="numpy")
+def neighbours_kernel(box, centre, mu, box_centre, reach, a, host, disk_like, query, ring_inner, ring_outer,
+                      min_piece_half, width, height):
+    """``detect._neighbours``: per blob the host whose coded ring it is a piece of (-1: none) and,
+    for the queries, the distance from its box centre to the nearest thresholded pixel of another
+    blob; and the pairs looked at and the contours visited (the work).
 
     Of two hosts that could claim one piece (rings that overlap), the nearer one (in its own
-    ellipse's radii) takes it.
+    ellipse's radii) takes it. A disk-like piece must be as wide (radially) as a ring can be:
+    ``min_piece_half`` host radii for its moments' half extent towards the host (a ring one
+    radius wide gives 0.58), so the dots round a bright sticker taken for a host are not its ring.
     """
     n = centre.shape[0]
     host_of = np.full(n, -1, dtype=np.intp)
     near = np.full(n, np.inf)
     if n < 2:
-        return host_of, near
-    pi, pj = _pairs_within(centre, r_px)
+        return host_of, near, 0, 0
+    pi, pj, visits = _pairs_near(box, centre, box_centre, reach, a, host, query, ring_outer, width, height)
     m = pi.size
-    # both directions of every pair: k < m is (i = pi, j = pj), k >= m the reverse
-    per = np.zeros(2 * m)
-    claim = np.zeros(2 * m, dtype=np.bool_)
+    per = np.zeros(m)
+    claim = np.zeros(m, dtype=np.bool_)
     claimed = np.zeros(n, dtype=np.bool_)
-    for k in range(2 * m):
-        i, j = (pi[k], pj[k]) if k < m else (pj[k - m], pi[k - m])
+    for k in range(m):
+        i, j = pi[k], pj[k]
         if not host[i]:  # only a host claims pieces (per[k] is used only for a claim)
             continue
         dx, dy = centre[j, 0] - centre[i, 0], centre[j, 1] - centre[i, 1]
@@ -95,29 +136,29 @@ def neighbours_kernel(centre, mu, box_centre, reach, host, disk_like, r_px, ring
         rho = d * per_px
         if disk_like[j]:
             c = (rho > ring_inner - 0.6 and (d - half) * per_px > 1.0
-                 and (d + half) * per_px < ring_outer + 0.4)
+                 and (d + half) * per_px < ring_outer + 0.4 and half * per_px >= min_piece_half)
         else:
             c = rho < ring_outer + 0.5
         per[k], claim[k] = per_px, c
         if claim[k]:
             claimed[j] = True
     best = np.full(n, np.inf)
-    for k in range(2 * m):
-        i, j = (pi[k], pj[k]) if k < m else (pj[k - m], pi[k - m])
+    for k in range(m):
+        i, j = pi[k], pj[k]
         if claim[k] and not claimed[i]:  # a claimed host claims nothing
             dx, dy = centre[j, 0] - centre[i, 0], centre[j, 1] - centre[i, 1]
             rho = (np.sqrt(dx * dx + dy * dy) + 1e-9) * per[k]
             if rho < best[j]:
                 best[j], host_of[j] = rho, i
-    for k in range(2 * m):
-        i, j = (pi[k], pj[k]) if k < m else (pj[k - m], pi[k - m])
+    for k in range(m):
+        i, j = pi[k], pj[k]
         if host_of[j] == i:
             approach = ring_inner * (1.0 / max(per[k], 1e-9) + 0.5) - 6.0
         else:
             bx, by = centre[j, 0] - box_centre[i, 0], centre[j, 1] - box_centre[i, 1]
             approach = np.sqrt(bx * bx + by * by) - reach[j] - 0.5
         near[i] = min(near[i], approach)
-    return host_of, near
+    return host_of, near, m, visits
 
 
 @njit(cache=True, error_model="numpy")
@@ -151,7 +192,7 @@ def mask_windows_kernel(img, cu, cv, half, crowd, own, seg):
 
     For each window ``crowd[k]``: the blob's own region is ``x' Q x <= 1`` about (x0, y0) from
     the window centre, ``own`` (n, 5) rows (x0, y0, Q_uu, Q_uv, Q_vv); pixels outside it that are
-    brighter than the rim's lower quartile plus ``seg``, grown by 3 px (their blur tail), take
+    brighter than the rim's lower quartile plus ``seg[i]`` (DN), grown by 3 px (their blur tail), take
     that quartile. The region's test is done in float32, as the former array expression did.
 
     Returns the windows' s*s float32 values, one after the other (``buf``), and each window's
@@ -166,7 +207,7 @@ def mask_windows_kernel(img, cu, cv, half, crowd, own, seg):
         boff[i] = total
         total += s * s
     buf = np.empty(max(total, 1), dtype=np.float32)
-    one, seg32 = np.float32(1.0), np.float32(seg)
+    one = np.float32(1.0)
     for k in range(crowd.size):
         i = crowd[k]
         h = half[i]
@@ -193,7 +234,7 @@ def mask_windows_kernel(img, cu, cv, half, crowd, own, seg):
         q3, q4, q5 = np.float32(qa), np.float32(2 * qb), np.float32(qc)
         outside = np.zeros((s, s), dtype=np.bool_)
         bright = np.zeros((s, s), dtype=np.bool_)
-        thr = level0 + seg32
+        thr = level0 + np.float32(seg[i])
         for a in range(s):
             dv = np.float32(a - h)
             for b in range(s):

@@ -21,7 +21,7 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 
-from service.core import contour_kernel, crowd_kernel
+from service.core import contour_kernel, crowd_kernel, noise_kernel
 
 # rows of the float output
 UV, ELLIPSE, FLUX, LEVEL, PEAK, BACKGROUND, SB2, K_SHOT, VAR_BASE, VAR_PER_K = 0, 0, 5, 6, 7, 8, 9, 10, 11, 12
@@ -102,7 +102,8 @@ def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff):
     img : (H, W) uint8 or uint16
     cu, cv, half : (n,) int, px
     placed : (n,) bool -- the window lies inside the image (others give zeros and a crossed rim)
-    seg, full : float, DN -- segmentation and saturation levels
+    seg : (n,) float, DN -- each window's segmentation level above its background (the noise's)
+    full : float, DN -- saturation level
     buf : (K,) float32 -- pixel values replacing the image's in crowded windows (others masked)
     boff : (n,) int -- each window's s*s values' offset into ``buf``, -1: read the image
 
@@ -139,10 +140,10 @@ def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff):
         u0, v0 = cu[i] - h, cv[i] - h
         o = boff[i]
         if o < 0:
-            n_sat[i], edge[i] = _window(img, v0, u0, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, i)
+            n_sat[i], edge[i] = _window(img, v0, u0, img, v0, u0, h, seg[i], full, w, wi, sums, rb, ru, rv, out, i)
         else:
             P = buf[o:o + s * s].reshape(s, s)
-            n_sat[i], edge[i] = _window(P, 0, 0, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, i)
+            n_sat[i], edge[i] = _window(P, 0, 0, img, v0, u0, h, seg[i], full, w, wi, sums, rb, ru, rv, out, i)
     return out, n_sat, edge
 
 
@@ -369,15 +370,17 @@ def _nan_to_num(x: float) -> float:
 @njit(cache=True, error_model="numpy")
 def assess_kernel(out, n_sat, edge, usable, contrast, limits, codes):
     """Reason (-1: accepted), sigma_px and fill of each window of :func:`measure_windows_kernel`'s
-    ``out`` (see ``detect._assess`` for the statistics).
+    ``out`` (see ``detect._assess`` for the statistics); ``contrast`` (n,) DN: each window's
+    least peak above its background.
 
     ``limits``: min_area, max_area, max_aspect, min_fill, max_saturated, min_plateau_b,
-    min_flat_top, shape sigma (2), shape floor (2); ``codes``: the reasons saturated, low
+    min_flat_top, shape sigma (2), shape floor (2), the largest flux-over-plateau area per moments'
+    ellipse area (for b >= min_plateau_b, and below); ``codes``: the reasons saturated, low
     contrast, too small, too big, misshapen.
     """
     n = out.shape[1]
     min_area, max_area, max_aspect, min_fill, max_sat, min_b, min_flat = limits[:7]
-    sig0, sig1, floor0, floor1 = limits[7:11]
+    sig0, sig1, floor0, floor1, ratio_flat, ratio_small = limits[7:13]
     levels = np.full(n, -1, dtype=np.intp)
     plateau = np.zeros(n, dtype=np.bool_)
     for i in range(n):
@@ -385,7 +388,7 @@ def assess_kernel(out, n_sat, edge, usable, contrast, limits, codes):
         area = S / level
         if n_sat[i] > max_sat:
             levels[i] = codes[0]
-        elif not (out[PEAK, i] - out[BACKGROUND, i] >= contrast and level > 0):
+        elif not (out[PEAK, i] - out[BACKGROUND, i] >= contrast[i] and level > 0):
             levels[i] = codes[1]
         elif not area >= min_area:
             levels[i] = codes[2]
@@ -415,7 +418,11 @@ def assess_kernel(out, n_sat, edge, usable, contrast, limits, codes):
         q = a * a / 4.0
         shot4 = 14 * q**4 - 2 * al * 5 * q**3 + (al * al + 2 * be) * 2 * q * q - 2 * al * be * q + be * be
         kurt_noise = np.sqrt(sb2 * bg4 + k * S * _maximum(shot4, 0.0)) / (S * m2 * m2)
+        # a disk's flux over its plateau is its ellipse's area; a ring, a glyph or a hollow blob has
+        # a dim centre, so its "area" is many times the moments' (the blur estimate stops at 0)
+        ratio_max = ratio_flat if b >= min_b else ratio_small
         shape_ok = (b * max_aspect >= a and f >= min_fill and out[FLAT_TOP, i] >= min_flat
+                    and area <= ratio_max * np.pi * a * b
                     and np.sqrt(out[M3SQ, i]) / (2.0 * tr) <= sig0 * asym_noise + floor0
                     and abs(out[KURT, i] - kap) <= sig1 * kurt_noise + floor1
                     and np.isfinite(out[0, i]) and np.isfinite(out[1, i]))
@@ -432,13 +439,16 @@ def warm_up() -> None:
     c, half = np.array([16, 16], dtype=np.intp), np.array([6, 6], dtype=np.intp)
     placed = np.ones(2, dtype=np.bool_)
     buf = img[10:23, 10:23].astype(np.float32).ravel()
-    out, n_sat, edge = measure_windows_kernel(img, c, c, half, placed, 10.0, 255.0, buf,
+    seg = np.full(2, 10.0)
+    out, n_sat, edge = measure_windows_kernel(img, c, c, half, placed, seg, 255.0, buf,
                                               np.array([-1, 0], dtype=np.intp))
-    assess_kernel(out, n_sat, edge, placed, 20.0, np.array([6, 5000, 4, 0.6, 2, 2.5, 0.4, 3, 4, 0.015, 0.05]),
-                  np.arange(5, dtype=np.intp))
+    limits = np.array([6, 5000, 4, 0.6, 2, 2.5, 0.4, 3, 4, 0.015, 0.05, 1.3, 2.5])
+    assess_kernel(out, n_sat, edge, placed, 2 * seg, limits, np.arange(5, dtype=np.intp))
     contour_kernel.warm_up()
+    noise_kernel.warm_up()
     centre, flags = np.array([[1.0, 1.0], [9.0, 1.0]]), np.ones(2, dtype=np.bool_)
-    crowd_kernel.neighbours_kernel(centre, np.ones((2, 3)), np.ones((2, 2), dtype=np.intp),
-                                   np.ones(2, dtype=np.intp), flags, flags, 20.0, 2.0, 3.2)
+    box = np.array([[0, 0, 2, 2], [8, 0, 10, 2]], dtype=np.intp)
+    crowd_kernel.neighbours_kernel(box, centre, np.ones((2, 3)), np.ones((2, 2), dtype=np.intp),
+                                   np.ones(2, dtype=np.intp), np.ones(2), flags, flags, flags, 2.0, 3.2, 0.4, 16, 16)
     own = np.array([[0.0, 0.0, 0.1, 0.0, 0.1], [np.nan] * 5])
-    crowd_kernel.mask_windows_kernel(img, c, c, half, np.array([0], dtype=np.intp), own, 10.0)
+    crowd_kernel.mask_windows_kernel(img, c, c, half, np.array([0], dtype=np.intp), own, seg)
