@@ -326,9 +326,11 @@ def run_camera_calibration(
             shots = shots2
     if progress is not None:
         progress.close()
-    formats.write_json_atomic(output, camera_json(result))
+    # results say "not determined" as null (a sigma of a target seen once), never as a NaN
+    formats.write_json_atomic(output, formats.null_for_unknown(camera_json(result)))
     if field_out:
-        formats.write_json_atomic(field_out, refined_field_json(result, field, f"{field.name}-surveyed"))
+        formats.write_json_atomic(field_out, formats.null_for_unknown(
+            refined_field_json(result, field, f"{field.name}-surveyed")))
     if observations_out:
         formats.write_json_atomic(observations_out, formats.image_observations_to_json(
             [formats.ImageObservations(s.name, list(s.ids), s.uv) for s in shots]))
@@ -570,7 +572,7 @@ def run_rig_calibration(
                      extra={**result.extra, "pairing": pairing, "images_left_out": [str(p) for p in left_out]})
     if progress is not None:
         progress.close()
-    formats.write_json_atomic(output, result.to_dict())
+    formats.write_json_atomic(output, formats.null_for_unknown(result.to_dict()))
     return result
 
 

@@ -86,6 +86,18 @@ def reject_non_finite(data: Any, source: str) -> None:
             stack.extend((f"{where}[{i}]", x) for i, x in enumerate(v))
 
 
+def null_for_unknown(data: Any) -> Any:
+    """``data`` with every NaN or infinity replaced by None (JSON ``null``): how a result file says
+    "not determined" (e.g. the sigma of a target left with fewer than two rays)."""
+    if isinstance(data, float):
+        return data if math.isfinite(data) else None
+    if isinstance(data, dict):
+        return {k: null_for_unknown(v) for k, v in data.items()}
+    if isinstance(data, list | tuple):
+        return [null_for_unknown(v) for v in data]
+    return data
+
+
 def _read_text(path: str | os.PathLike[str]) -> str:
     p = Path(path)
     try:

@@ -176,3 +176,17 @@ def test_a_refused_upload_stores_nothing(tmp_path):
             state.update("camera", data, note=note)
     assert [v["version"] for v in store.versions("camera")] == [1]
     assert state.generation == generation and state.camera == formats.camera_from_json(CAMERA)
+
+
+def test_a_result_file_says_not_determined_as_null_and_reads_back(tmp_path):
+    from service.sim.scene import reference_camera
+
+    cam = reference_camera().to_dict()
+    cam["calibration"] = {"targets": [{"id": "7", "n_rays": 1, "rms_px": float("nan"),
+                                       "sigma_mm": [float("nan")] * 3}], "sigma0_px": 0.03}
+    with pytest.raises(formats.FormatError, match="not standard JSON"):
+        formats.write_json_atomic(tmp_path / "bad.json", cam)
+    formats.write_json_atomic(tmp_path / "camera.json", formats.null_for_unknown(cam))
+    text = (tmp_path / "camera.json").read_text()
+    assert "NaN" not in text and '"rms_px": null' in text
+    assert formats.read_camera(tmp_path / "camera.json").c_mm == reference_camera().c_mm
