@@ -107,6 +107,7 @@ class CameraProcessor:
             "camera": self.name,
             "seq": frame.seq,
             "t_exposure_host_ns": t_exposure_ns,
+            "t_exposure_unix_ns": t_exposure_ns + self._wall_minus_mono_ns,  # a client can measure latency
             "t_wall": _wall(t_exposure_ns + self._wall_minus_mono_ns),
             "exposure_source": source,
         }

@@ -5,7 +5,11 @@ Both devices' clocks are mapped onto the host clock with a lower-envelope fit
 controller's seconds. The transport latencies the envelope cannot see (the
 smallest delay from event to arrival) come from the configuration; what is
 left of them shows up as a time offset between measured and reported motion,
-which the worker estimates and reports (``estimate_time_offset_s``).
+which the worker estimates and reports (``estimate_time_offset_s``). Each
+frame is one clock event, however often it is asked about. A clock's rate is
+fitted only over a long enough span (the camera's from 30 s on, the robot's
+4 s window never): over a short one a delay floor that moves with the host's
+load reads as a drift of hundreds of ppm.
 
 Fallbacks, in order of preference: the driver's own exact exposure time
 (``Frame.t_exposure_host_ns``), the mapped device stamp, the arrival time
@@ -21,6 +25,12 @@ import numpy as np
 from drivers.base import Frame
 from drivers.history import RobotHistory
 from service.core.timesync import ClockMapper, pose_at
+
+CAMERA_CLOCK_WINDOW = 1200  # frames: a minute at 20 processed frames per second, four at 5
+CAMERA_RATE_SPAN_S = 30.0  # see timesync.fit_lower_envelope: a floor moving by 1 ms then reads as 33 ppm
+CAMERA_OFFSET_SPAN_S = 10.0  # meanwhile a 50 ppm drift errs by at most 0.5 ms
+ROBOT_RATE_SPAN_S = 30.0
+ROBOT_OFFSET_SPAN_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -48,22 +58,42 @@ class FramePairer:
         robot_transport_latency_s: float = 0.0,
         max_sample_gap_s: float = 0.05,
     ) -> None:
-        self.camera_clock = ClockMapper(min_latency_ns=camera_transport_latency_s * 1e9)
-        self.robot_clock = ClockMapper(window=2000, min_latency_ns=robot_transport_latency_s * 1e9, refit_every=50)
+        # a camera's delay floor moves with the host's load (its arrival stamps are the host's): its rate
+        # is fitted over half a minute or more only, and until then the offset follows the last 10 s
+        self.camera_clock = ClockMapper(window=CAMERA_CLOCK_WINDOW, min_latency_ns=camera_transport_latency_s * 1e9,
+                                        min_rate_span_ns=CAMERA_RATE_SPAN_S * 1e9,
+                                        offset_span_ns=CAMERA_OFFSET_SPAN_S * 1e9)
+        # the robot's window (2000 reports: 4 s at 500 Hz) is too short for a rate when the floor moves
+        # (it swung by hundreds of ppm on a loaded host): the offset follows the last 2 s instead, where a
+        # controller drifting by 50 ppm errs by 0.1 ms at most
+        self.robot_clock = ClockMapper(window=2000, min_latency_ns=robot_transport_latency_s * 1e9, refit_every=50,
+                                       min_rate_span_ns=ROBOT_RATE_SPAN_S * 1e9,
+                                       offset_span_ns=ROBOT_OFFSET_SPAN_S * 1e9)
         self.camera_latency_ns = camera_transport_latency_s * 1e9
         self.max_gap_ns = max_sample_gap_s * 1e9
         self._robot_fed_until_ns = -1
+        self._last: tuple[tuple[int, int | None, int], tuple[int, str]] | None = None
 
     def exposure_instant_ns(self, frame: Frame) -> tuple[int, str]:
-        """Mid-exposure on the host clock and where it came from; feeds the camera clock mapping."""
+        """Mid-exposure on the host clock and where it came from; feeds the camera clock mapping.
+
+        A frame is one clock event however often it is asked about (the processor asks, then
+        ``pair`` does): the same frame again returns the same instant and adds no point.
+        """
+        key = (frame.seq, frame.t_device_ns, frame.t_host_ns)
+        if self._last is not None and self._last[0] == key:
+            return self._last[1]
         half_ns = frame.exposure_us * 500.0
         if frame.t_exposure_host_ns is not None:
-            return int(frame.t_exposure_host_ns), "driver"
-        if frame.t_device_ns is not None:
+            out = int(frame.t_exposure_host_ns), "driver"
+        elif frame.t_device_ns is not None:
             # exposure ended before the readout and transfer began: remove it from the arrival
             self.camera_clock.add(frame.t_device_ns, frame.t_host_ns - 2 * half_ns)
-            return int(self.camera_clock.host_from_device(frame.t_device_ns) + half_ns), "device_clock"
-        return int(frame.t_host_ns - half_ns - self.camera_latency_ns), "arrival"
+            out = int(self.camera_clock.host_from_device(frame.t_device_ns) + half_ns), "device_clock"
+        else:
+            out = int(frame.t_host_ns - half_ns - self.camera_latency_ns), "arrival"
+        self._last = (key, out)
+        return out
 
     def _feed_robot(self, t_host: np.ndarray, t_robot_s: np.ndarray) -> None:
         for th, tr in zip(t_host, t_robot_s, strict=True):

@@ -74,7 +74,7 @@ class Worker:
     def __init__(self, settings: Settings, store: Any = None, calibration: CalibrationState | None = None) -> None:
         self.settings = settings
         self.store = store
-        self.cell = CellRuntime(settings)  # the simulated cell and its stand-ins, when configured
+        self.cell = CellRuntime(settings, on_event=self.event)  # the simulated cell and its stand-ins
         self.calibration = calibration or CalibrationState(settings, None, self.cell)
         self._wakeup = threading.Condition()
         self._stop = threading.Event()
@@ -164,6 +164,8 @@ class Worker:
                     self._set_robot_state(DeviceState.failed, str(e))
                     return
             if not self.robot.connected:
+                if self.robot_state is DeviceState.ok:  # say so before reconnecting: a quick reopen hides it
+                    self._set_robot_state(DeviceState.disconnected, self._robot_link_error())
                 try:
                     self.robot.close()
                     self.robot.open()
@@ -177,6 +179,14 @@ class Worker:
             elif self.robot_state is not DeviceState.ok:
                 self._set_robot_state(DeviceState.ok)
             self._stop.wait(0.2)
+
+    def _robot_link_error(self) -> str:
+        assert self.robot is not None
+        try:
+            self.robot.latest()
+        except DriverError as e:
+            return str(e)
+        return "the robot's link dropped"
 
     def _set_robot_state(self, state: DeviceState, error: str = "") -> None:
         if state != self.robot_state:

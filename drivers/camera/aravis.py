@@ -19,8 +19,13 @@ Aravis objects are released in a background thread: their finalisers wait
 for GVCP timeouts (~10 s) and must not block the caller.
 
 Clocks: ``t_device_ns`` is the buffer's device timestamp (GigE Vision ticks
-scaled to ns by Aravis); Aravis' own host reception time (``CLOCK_REALTIME``,
-not monotonic) is kept in ``meta["system_timestamp_ns"]``.
+scaled to ns by Aravis). ``t_host_ns`` is when the leader reached Aravis' stream
+thread (its ``CLOCK_REALTIME`` system timestamp, ``meta["system_timestamp_ns"]``,
+put on the monotonic clock by ``drivers.timing.arrival_ns``), not the pop
+(``meta["t_popped_ns"]``), which waits for the GIL that numba kernels hold for
+milliseconds. That thread runs at nice -10 where allowed and reads a UDP socket,
+not Aravis' packet-socket ring, which hands packets over every 5 ms or 2 MiB
+(``packet_socket=True``: less CPU per packet, stamps up to 5 ms late).
 """
 
 from __future__ import annotations
@@ -54,6 +59,7 @@ from drivers.base import (
     StrobeSettings,
     TriggerMode,
 )
+from drivers.timing import arrival_ns, thread_nice
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +86,9 @@ _capsule_pointer = ctypes.pythonapi.PyCapsule_GetPointer
 _capsule_pointer.restype, _capsule_pointer.argtypes = ctypes.c_void_p, [ctypes.py_object, ctypes.c_char_p]
 
 _POP_SLICE_S = 0.1  # fetch waits in slices this long so that a lost camera is noticed within it
+_CLOCK_STEP_NS = 1_000_000  # a change of CLOCK_REALTIME - CLOCK_MONOTONIC larger than this is a step
 _MiB = 1 << 20
+_STREAM_THREAD_NICE = -10  # the stream thread stamps arrivals: it runs ahead of image processing when allowed
 
 
 def discover() -> list[dict[str, str]]:
@@ -118,6 +126,8 @@ class AravisCamera:
     socket_buffer_bytes : the stream's receive socket buffer; None lets Aravis size it by payload.
     packet_resend : ask the camera to resend lost packets (GigE Vision).
     reconnect_interval_s : the least time between two reconnection attempts after a loss.
+    packet_socket : receive through Aravis' packet-socket ring (less CPU per packet, arrival
+        stamps up to 5 ms late; see the module note) instead of a UDP socket.
 
     ``CameraSettings.strobe = None`` puts out the ring light this driver switched on earlier
     (that line's ``LineSource`` goes ``Off``) and otherwise leaves the camera's lines alone, as
@@ -133,6 +143,7 @@ class AravisCamera:
         socket_buffer_bytes: int | None = 4 * _MiB,
         packet_resend: bool = True,
         reconnect_interval_s: float = 1.0,
+        packet_socket: bool = False,
     ) -> None:
         if n_buffers < 2:
             raise ValueError(f"n_buffers must be at least 2, got {n_buffers}")
@@ -142,6 +153,7 @@ class AravisCamera:
         self.socket_buffer_bytes = socket_buffer_bytes
         self.packet_resend = packet_resend
         self.reconnect_interval_s = float(reconnect_interval_s)
+        self.packet_socket = bool(packet_socket)
 
         self._camera: Any = None  # Aravis.Camera
         self._device: Any = None  # Aravis.Device (GvDevice for GigE Vision)
@@ -159,6 +171,7 @@ class AravisCamera:
         self._n_reconnects = 0
         self._releasers: list[threading.Thread] = []
         self._lit_line: str | None = None  # the output line this driver set up as the strobe
+        self._real_minus_mono_ns: int | None = None  # CLOCK_REALTIME - CLOCK_MONOTONIC at the last pop
 
     # --- the CameraDriver protocol ---------------------------------------------------------
 
@@ -299,7 +312,12 @@ class AravisCamera:
         if camera.is_gv_device() and self.packet_size is not None:
             self._call(lambda: camera.gv_set_packet_size(int(self.packet_size)), "set the packet size")
             self._device.set_packet_size_adjustment(Aravis.GvPacketSizeAdjustment.NEVER)
-        stream = self._call(lambda: camera.create_stream(None, None), "create a stream")
+        if isinstance(self._device, Aravis.GvDevice):  # the option is read when the stream is created
+            self._device.set_stream_options(Aravis.GvStreamOption.NONE if self.packet_socket
+                                            else Aravis.GvStreamOption.PACKET_SOCKET_DISABLED)
+        # Aravis starts the stream's receiving thread here: it inherits this thread's priority
+        with thread_nice(_STREAM_THREAD_NICE):
+            stream = self._call(lambda: camera.create_stream(None, None), "create a stream")
         if stream is None:
             raise DriverError(f"the camera {self._name()} gave no stream channel")
         if isinstance(stream, Aravis.GvStream):
@@ -389,7 +407,8 @@ class AravisCamera:
 
     def _frame_from(self, buffer: Any) -> Frame | None:
         """An owned frame from a popped buffer, or None for a failed one; the buffer goes back at once."""
-        t_host_ns = time.monotonic_ns()
+        t_pop_ns = time.monotonic_ns()
+        real_minus_mono_ns = time.time_ns() - t_pop_ns
         try:
             status = buffer.get_status()
             if status != Aravis.BufferStatus.SUCCESS:
@@ -411,14 +430,16 @@ class AravisCamera:
             self._failed["size-mismatch"] += 1
             return None
         self._n_ok += 1
+        previous, self._real_minus_mono_ns = self._real_minus_mono_ns, real_minus_mono_ns
+        stepped = previous is not None and abs(real_minus_mono_ns - previous) > _CLOCK_STEP_NS
         return Frame(
             image=image,
             seq=int(seq),
-            t_host_ns=t_host_ns,
+            t_host_ns=t_pop_ns if stepped else arrival_ns(t_pop_ns, int(t_system_ns), real_minus_mono_ns),
             t_device_ns=int(t_device_ns) if t_device_ns else None,
             exposure_us=self._exposure_us,
-            meta={"system_timestamp_ns": int(t_system_ns), "failed_buffers": dict(self._failed),
-                  "pixel_format": _NAME_BY_CODE[code]},
+            meta={"system_timestamp_ns": int(t_system_ns), "t_popped_ns": t_pop_ns,
+                  "failed_buffers": dict(self._failed), "pixel_format": _NAME_BY_CODE[code]},
         )
 
     @staticmethod

@@ -15,6 +15,16 @@ What it adds to Aravis' fake camera:
 * image content from ``frame_source(t_host_ns, lit)``: libaravis' fill-pattern
   hook is set through ctypes, because the PyGObject binding of
   ``arv_fake_camera_set_fill_pattern`` crashes the process (Aravis 0.8.26);
+* exposure timing: a frame's exposure starts when the fake camera fills it (or, rendering
+  ahead, at the instant its image was rendered for), its device timestamp is that start on the
+  host's real-time clock (ns), the image shows the scene at mid-exposure, and the frame leaves
+  no earlier than the end of its exposure, as a camera reads out after exposing. With
+  ``render_ahead`` a background thread renders each next frame for the fake camera's next
+  frame slot (``AcquisitionFramePeriod`` on the real-time clock) that it can finish in time;
+  a frame with nothing rendered for it (the first, a software trigger, a changed exposure)
+  starts its exposure later by the expected render time. So a frame always leaves a small,
+  steady delay after its exposure, as from a camera, rather than tens or hundreds of
+  milliseconds of rendering later, which a clock mapping would take for transfer latency;
 * ``lit``: True only while the camera's registers say the ring-light line is
   an output driven by ``ExposureActive`` (or by ``Timer0Active`` with the timer
   started by the exposure and a duration > 0) and not inverted, so a test can
@@ -26,7 +36,7 @@ What it adds to Aravis' fake camera:
 
 What it does not model: packet loss unless asked (``lost_packet_ratio``),
 network latency, clock drift (device timestamps are the host's real-time
-clock, µs resolution), exposure time or gain in the image (``frame_source``
+clock), motion blur, exposure time or gain in the image (``frame_source``
 decides), partial strobe overlap (the light is on or off for a whole frame),
 hardware triggers (with ``TriggerSource = Line0`` no frame comes), packed pixel
 formats. Frame ids start near 65400 and wrap at 65535 (Aravis' choice).
@@ -57,6 +67,8 @@ from typing import Any
 
 import numpy as np
 
+from drivers.timing import thread_nice
+
 try:
     import gi
 
@@ -72,7 +84,8 @@ __all__ = ["DEFAULT_XML", "FrameSource", "GvStandIn", "cell_frame_source", "cont
 DEFAULT_XML = Path(__file__).with_name("gv_camera.xml")
 
 FrameSource = Callable[[int, bool], np.ndarray]
-"""``frame_source(t_host_ns, lit) -> (H, W) uint8`` (or uint16): the whole sensor at that instant."""
+"""``frame_source(t_host_ns, lit) -> (H, W) uint8`` (or uint16): the whole sensor at that instant
+(``time.monotonic_ns()``; the stand-in asks for mid-exposure)."""
 
 _GVCP_PORT = 3956
 
@@ -80,12 +93,15 @@ _GVCP_PORT = 3956
 _REG_WIDTH, _REG_HEIGHT = 0x100, 0x104
 _REG_SENSOR_HEIGHT, _REG_SENSOR_WIDTH = 0x118, 0x11C
 _REG_OFFSET_X, _REG_OFFSET_Y = 0x130, 0x134
+_REG_FRAME_PERIOD_US, _REG_TRIGGER_MODE = 0x138, 0x300  # the fake's free-run period; 1 = triggered
 _REG_MODEL_NAME, _MODEL_NAME_SIZE = 0x68, 32  # GigE Vision bootstrap string
 _REG_LINE_MODE, _REG_LINE_SOURCE, _REG_LINE_INVERTER, _LINE_STRIDE = 0xA100, 0xA104, 0xA108, 0x10
 _REG_TIMER_DURATION, _REG_TIMER_TRIGGER_SOURCE = 0xA310, 0xA318
 _LINE_MODE_OUTPUT = 1
 _SOURCE_EXPOSURE_ACTIVE, _SOURCE_TIMER0_ACTIVE = 1, 2
 _TIMER_TRIGGER_EXPOSURE_START = 1
+_STALE_AHEAD_NS = 500_000_000  # a frame rendered ahead for an exposure longer ago than this is dropped
+_RESULT_TIMEOUT_S = 5.0  # the longest a fill waits for the frame being rendered ahead for it
 
 _FillPattern = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32,
                                 ctypes.c_uint32)
@@ -129,8 +145,9 @@ class GvStandIn:
     Parameters
     ----------
     frame_source : ``(t_host_ns, lit) -> (height, width) uint8`` (uint16 is taken as is for the
-        16-bit formats, uint8 is shifted up to them). Called in the fake camera's thread once per
-        frame; ``t_host_ns`` is ``time.monotonic_ns()`` when the frame is filled.
+        16-bit formats, uint8 is shifted up to them): the scene at mid-exposure, ``t_host_ns`` on
+        ``time.monotonic_ns()``. Called once per frame in the fake camera's thread, or with
+        ``render_ahead`` mostly in the stand-in's render thread (so it must be thread-safe).
     address : IPv4 address to listen on (one stand-in per address; see the module note).
     serial : serial number the camera reports (at most 15 characters).
     width, height : sensor size in px; also the initial ROI.
@@ -141,6 +158,10 @@ class GvStandIn:
     trigger_rate_hz : how often the fake looks for a software trigger (Aravis' default is 25 Hz).
     lost_packet_ratio : fraction of GVSP packets the fake drops on purpose (0 = none).
     lock_timeout_s : how long ``start`` waits for another process using the same address.
+    render_ahead : render each frame before the fake camera asks for it (see the module note);
+        for sources that take longer than a frame period to draw.
+    readout_nice : nice value for the fake camera's thread (it times the exposures and sends the
+        frames), when the process may lower it; the render thread keeps the caller's. None: no change.
     """
 
     def __init__(
@@ -156,6 +177,8 @@ class GvStandIn:
         trigger_rate_hz: float = 100.0,
         lost_packet_ratio: float = 0.0,
         lock_timeout_s: float = 60.0,
+        render_ahead: bool = False,
+        readout_nice: int | None = None,
     ) -> None:
         if not (ring_light_line.startswith("Line") and ring_light_line[4:].isdigit()):
             raise ValueError(f"ring_light_line must be LineN, got {ring_light_line!r}")
@@ -173,8 +196,13 @@ class GvStandIn:
         self.trigger_rate_hz = float(trigger_rate_hz)
         self.lost_packet_ratio = float(lost_packet_ratio)
         self.lock_timeout_s = float(lock_timeout_s)
+        self.render_ahead = bool(render_ahead)
+        self.readout_nice = readout_nice
 
         self.frames_served = 0
+        self.frames_rendered_ahead = 0  # frames served from the render thread (the rest rendered in the fill)
+        # how long after its exposure ended each recent frame went out, s (its scheduling delay)
+        self.readout_delays_s: collections.deque[float] = collections.deque(maxlen=200)
         self.lit_frames = 0
         self.errors: list[str] = []  # exceptions raised in the fill callback (it must not raise into C)
 
@@ -185,6 +213,12 @@ class GvStandIn:
         self._callback: Any = None
         self._lock_fd: int | None = None
         self._mutex = threading.Lock()
+        # rendering ahead: the render thread, the frame it renders (exposure start ns, lit, exposure
+        # ns, future), the last exposure start served, and recent render durations (s)
+        self._pool: concurrent.futures.ThreadPoolExecutor | None = None
+        self._pending: tuple[int, bool, int, concurrent.futures.Future[np.ndarray]] | None = None
+        self._last_start_ns = -1
+        self._render_s: collections.deque[float] = collections.deque(maxlen=8)
 
     # --- lifecycle -------------------------------------------------------------------------
 
@@ -211,7 +245,12 @@ class GvStandIn:
         self._check_port_free()
         if self.xml_path is not None and not os.path.isfile(self.xml_path):
             raise FileNotFoundError(f"no GenICam XML at {self.xml_path}")
-        gv = Aravis.GvFakeCamera.new_full(self.address, self.serial, self.xml_path)
+        if self.render_ahead:  # its thread starts here, at this thread's priority
+            self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="gv-render-ahead")
+            self._pool.submit(lambda: None).result()
+            self._pending, self._last_start_ns = None, -1
+        with thread_nice(self.readout_nice):  # the fake's thread starts here and inherits it
+            gv = Aravis.GvFakeCamera.new_full(self.address, self.serial, self.xml_path)
         if not gv.is_running():
             raise RuntimeError(
                 f"Aravis' fake camera cannot listen on {self.address}: it binds only addresses of a network "
@@ -240,6 +279,9 @@ class GvStandIn:
             self._callback = None
             self._gv = self._fake = None  # joins the fake's thread and closes its sockets
             self._fake_ptr = 0
+            if self._pool is not None:
+                self._pool.shutdown(wait=False, cancel_futures=True)
+                self._pool, self._pending = None, None
         log.info("GigE Vision stand-in %s on %s stopped", self.serial, self.address)
 
     def close(self) -> None:
@@ -278,33 +320,89 @@ class GvStandIn:
 
     # --- the fake camera's thread ------------------------------------------------------------
 
-    def _fill(self, buffer: int, _data: int, _exposure_us: int, _gain: int, pixel_format: int) -> None:
+    def _fill(self, buffer: int, _data: int, exposure_us: int, _gain: int, pixel_format: int) -> None:
         # called by libaravis with its fill mutex held; exceptions must not escape into C
         try:
-            t_host_ns = time.monotonic_ns()
+            t_call_ns = time.monotonic_ns()
+            exposure_ns = int(exposure_us) * 1000
             width = _lib.arv_buffer_get_image_width(buffer)
             height = _lib.arv_buffer_get_image_height(buffer)
             size = ctypes.c_size_t(0)
             data = _lib.arv_buffer_get_data(buffer, ctypes.byref(size))  # size reads 0 here: use the payload
             payload = _lib.arv_fake_camera_get_payload(self._fake_ptr)
             lit = self._lit()
-            got = self.frame_source(t_host_ns, lit)
-            if isinstance(got, tuple):
-                # the source drew the scene at another instant (a frame rendered ahead): stamp the
-                # buffer with that instant, so that the device clock and the content agree
-                got, t_content_ns = got
-                stamp = _lib.arv_buffer_get_timestamp(buffer)
-                _lib.arv_buffer_set_timestamp(buffer, max(0, stamp + (int(t_content_ns) - t_host_ns)))
-            sensor = np.asarray(got)
-            window = self._window(sensor, self._register(_REG_OFFSET_X), self._register(_REG_OFFSET_Y),
-                                  width, height, pixel_format)
+            if self._pool is not None:
+                t_start_ns, sensor, ahead = self._take_ahead(t_call_ns, lit, exposure_ns)
+                self._prepare_ahead(t_start_ns, lit, exposure_ns)  # renders while this frame waits
+            else:
+                t_start_ns, ahead = t_call_ns, False
+                sensor = self.frame_source(t_start_ns + exposure_ns // 2, lit)
+            window = self._window(np.asarray(sensor), self._register(_REG_OFFSET_X),
+                                  self._register(_REG_OFFSET_Y), width, height, pixel_format)
             ctypes.memmove(data, window.ctypes.data, min(window.nbytes, payload))
+            # the device clock is the host's real-time clock; the stamp is the exposure start
+            _lib.arv_buffer_set_timestamp(buffer, max(0, t_start_ns + time.time_ns() - time.monotonic_ns()))
+            wait_ns = t_start_ns + exposure_ns - time.monotonic_ns()
+            if wait_ns > 0:  # read out after the exposure ends, not before
+                time.sleep(wait_ns * 1e-9)
+            self.readout_delays_s.append((time.monotonic_ns() - t_start_ns - exposure_ns) * 1e-9)
             self.frames_served += 1
+            self.frames_rendered_ahead += ahead
             self.lit_frames += lit
         except Exception as e:  # a bug in frame_source: keep serving (black frames) and record it
             if len(self.errors) < 100:
                 self.errors.append(f"{type(e).__name__}: {e}")
             log.exception("GigE Vision stand-in %s: frame_source failed", self.serial)
+
+    # --- rendering ahead (the fake camera's thread, but for the renders themselves) ------------
+
+    def _render(self, t_start_ns: int, lit: bool, exposure_ns: int) -> np.ndarray:
+        t0 = time.perf_counter()
+        image = self.frame_source(t_start_ns + exposure_ns // 2, lit)
+        self._render_s.append(time.perf_counter() - t0)
+        return image
+
+    def _lead_ns(self) -> int:
+        """How long before an exposure its rendering must start: the recent worst render time and a margin."""
+        worst_s = max(self._render_s) if self._render_s else 0.2
+        return int((1.25 * worst_s + 0.003) * 1e9)
+
+    def _take_ahead(self, t_call_ns: int, lit: bool, exposure_ns: int) -> tuple[int, np.ndarray, bool]:
+        """The frame to serve now: the one rendered ahead for about now, else one exposed a render time from now."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            t_start_ns, p_lit, p_exposure_ns, future = pending
+            usable = (p_lit == lit and p_exposure_ns == exposure_ns and t_start_ns > self._last_start_ns
+                      and t_call_ns - t_start_ns < _STALE_AHEAD_NS)
+            if usable:
+                try:
+                    image = future.result(timeout=_RESULT_TIMEOUT_S)
+                except Exception:  # late, cancelled or failed: draw it here (a failure is recorded then)
+                    image = None
+                if image is not None:
+                    self._last_start_ns = t_start_ns
+                    return t_start_ns, image, True
+            future.cancel()
+        # nothing rendered for this frame (the first one, a trigger, new settings): expose it once it
+        # can be drawn, so that it still leaves right after its exposure
+        t_start_ns = max(t_call_ns + self._lead_ns(), self._last_start_ns + 1)
+        image = self._render(t_start_ns, lit, exposure_ns)
+        self._last_start_ns = t_start_ns
+        return t_start_ns, image, False
+
+    def _prepare_ahead(self, t_served_ns: int, lit: bool, exposure_ns: int) -> None:
+        """Render the next frame for the fake's first frame slot after this one that rendering can make."""
+        period_us = self._register(_REG_FRAME_PERIOD_US)
+        if self._pool is None or self._register(_REG_TRIGGER_MODE) != 0 or period_us == 0:
+            return  # triggered: the next exposure's instant is not known in advance
+        period_ns = period_us * 1000
+        now_ns = time.monotonic_ns()
+        real_minus_mono_ns = time.time_ns() - now_ns
+        # the fake starts frames at multiples of the period on the real-time clock
+        earliest_ns = max(now_ns + self._lead_ns(), t_served_ns + period_ns // 2) + real_minus_mono_ns
+        t_start_ns = -(-earliest_ns // period_ns) * period_ns - real_minus_mono_ns
+        future = self._pool.submit(self._render, t_start_ns, lit, exposure_ns)
+        self._pending = (t_start_ns, lit, exposure_ns, future)
 
     @staticmethod
     def _window(sensor: np.ndarray, x0: int, y0: int, width: int, height: int, pixel_format: int) -> np.ndarray:
@@ -383,14 +481,12 @@ class GvStandIn:
                                    f"device or program ({e.strerror})") from e
 
 
-def cell_frame_source(cell: Any, t0_ns: int | None = None, ahead: bool = False) -> FrameSource:
+def cell_frame_source(cell: Any, t0_ns: int | None = None) -> FrameSource:
     """A ``frame_source`` showing a :class:`service.sim.cell.SimCell` at ``(t_host_ns - t0_ns)`` s.
 
     Noise-free renders; a cell whose program holds still is rendered once per ring-light state.
-    With ``ahead`` a background thread renders the next frame for the instant the fake camera
-    is expected to fill it (its frame period, learnt from the calls), and the frame goes out at
-    once with that instant as its device timestamp: the fake camera renders inside its
-    exposure, and tens of milliseconds of rendering would otherwise look like transfer latency.
+    Safe to call from several threads (the cell is read only). A moving cell takes tens of
+    milliseconds per frame: serve it with ``GvStandIn(..., render_ahead=True)``.
     """
     t0 = time.monotonic_ns() if t0_ns is None else t0_ns
     still = getattr(cell.config, "program", None) == "hold"
@@ -404,30 +500,7 @@ def cell_frame_source(cell: Any, t0_ns: int | None = None, ahead: bool = False) 
             cache[lit] = image
         return image
 
-    if not ahead:
-        return render
-    pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="gv-prerender")
-    calls: collections.deque[int] = collections.deque(maxlen=9)
-    pending: dict[str, Any] = {}
-
-    def source(t_host_ns: int, lit: bool) -> Any:
-        calls.append(t_host_ns)
-        fut = pending.pop("future", None)
-        image, t_content = None, t_host_ns
-        if fut is not None and fut.done():
-            t_pred, lit_pred, img = fut.result()
-            if lit_pred == lit and len(calls) >= 3:
-                period = float(np.median(np.diff(np.array(calls))))
-                if abs(t_pred - t_host_ns) < 0.5 * period:
-                    image, t_content = img, t_pred
-        if image is None:
-            image = render(t_host_ns, lit)
-        if len(calls) >= 3:
-            t_next = t_host_ns + int(np.median(np.diff(np.array(calls))))
-            pending["future"] = pool.submit(lambda t=t_next, lt=lit: (t, lt, render(t, lt)))
-        return image, t_content
-
-    return source
+    return render
 
 
 @contextlib.contextmanager

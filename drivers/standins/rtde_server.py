@@ -27,7 +27,9 @@ protocol of one connection (bytes in, bytes out, no sockets, no clocks);
 clients, ticks a 500 Hz controller clock on ``time.monotonic`` and sends each
 started output recipe every ``round(500 / frequency)`` ticks. The state comes
 from ``state_source(t_s) -> RobotState`` with ``t_s`` the controller time in s
-since :meth:`RtdeServer.start`, a multiple of 2 ms.
+since :meth:`RtdeServer.start` (``origin_ns`` on ``time.monotonic_ns``), a
+multiple of 2 ms; it is asked for one tick ahead, so that a package leaves at
+its tick rather than after the state's computation.
 
 What it does not model: protocol version 1 framing, ``IN_USE`` inputs,
 input registers acting on anything, the real controller's network jitter and
@@ -403,6 +405,8 @@ class RtdeServer:
         self._wake_r: socket.socket | None = None
         self._wake_w: socket.socket | None = None
         self.packages_sent = 0
+        self.origin_ns: int | None = None  # time.monotonic_ns() of controller time 0 (set by start)
+        self._prepared: tuple[int, Any] | None = None  # (tick, state) computed ahead of its tick
 
     @property
     def running(self) -> bool:
@@ -429,6 +433,7 @@ class RtdeServer:
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
         self._stop.clear()
+        self.origin_ns = time.monotonic_ns()
         self._thread = threading.Thread(target=self._run, args=(listener,), name=f"rtde-standin-{self.host}",
                                         daemon=True)
         self._thread.start()
@@ -466,7 +471,7 @@ class RtdeServer:
         assert self._wake_r is not None
         sel.register(self._wake_r, selectors.EVENT_READ, "wake")
         period_s = 1.0 / self.base_rate_hz
-        t0 = time.monotonic()
+        t0 = (self.origin_ns or time.monotonic_ns()) * 1e-9
         next_tick_at = t0
         try:
             while not self._stop.is_set():
@@ -483,6 +488,7 @@ class RtdeServer:
                     tick = int((now - t0) / period_s)  # ticks missed under load are skipped, not queued
                     self._on_tick(sel, tick, tick * period_s)
                     next_tick_at = t0 + (tick + 1) * period_s
+                    self._prepare(tick + 1, (tick + 1) * period_s)
         except Exception:
             log.exception("RTDE stand-in on %s:%d stopped by an error", self.host, self.port)
         finally:
@@ -530,15 +536,28 @@ class RtdeServer:
         if client.sock in self._clients:
             self._flush(sel, client)
 
+    def _prepare(self, tick: int, t_s: float) -> None:
+        """The state of the next tick, computed now: at the tick the package goes out at once."""
+        self._prepared = None
+        if any(c.session.wants_output(tick) for c in self._clients.values()):
+            try:
+                self._prepared = (tick, self.state_source(t_s))
+            except Exception:
+                log.exception("state source failed at t = %.3f s", t_s)
+
     def _on_tick(self, sel: selectors.BaseSelector, tick: int, t_s: float) -> None:
         due = [c for c in self._clients.values() if c.session.wants_output(tick)]
+        prepared, self._prepared = self._prepared, None
         if not due:
             return
-        try:
-            state = self.state_source(t_s)
-        except Exception:
-            log.exception("state source failed at t = %.3f s", t_s)
-            return
+        if prepared is not None and prepared[0] == tick:
+            state = prepared[1]
+        else:
+            try:
+                state = self.state_source(t_s)
+            except Exception:
+                log.exception("state source failed at t = %.3f s", t_s)
+                return
         for c in due:
             for pkg in c.session.due_outputs(tick, state, t_s):
                 if len(c.outbuf) < _MAX_PENDING_BYTES:

@@ -29,6 +29,7 @@ from service.core.frames import interpolate_T
 Array = NDArray[np.float64]
 
 MAX_DRIFT = 1e-3  # 1000 ppm: a crystal drifts < 100 ppm; larger means a wrong clock unit or a reset
+RESET_JUMP_NS = 1e9  # a device clock going back further than this was reset; less: events out of order
 
 
 @dataclass(frozen=True)
@@ -68,7 +69,13 @@ def _lower_hull(x: Array, y: Array) -> list[int]:
     return hull
 
 
-def fit_lower_envelope(t_device: ArrayLike, t_host: ArrayLike, min_latency_ns: float = 0.0) -> ClockFit:
+def fit_lower_envelope(
+    t_device: ArrayLike,
+    t_host: ArrayLike,
+    min_latency_ns: float = 0.0,
+    min_rate_span_ns: float = 0.0,
+    offset_span_ns: float = np.inf,
+) -> ClockFit:
     """Fit the clock line under all (device, host-arrival) points.
 
     Parameters
@@ -76,11 +83,19 @@ def fit_lower_envelope(t_device: ArrayLike, t_host: ArrayLike, min_latency_ns: f
     t_device : (N,) float, ns — event times on the device clock
     t_host : (N,) float, ns — arrival times on the host clock (event + delay, delay >= min_latency)
     min_latency_ns : the smallest transport delay, subtracted from the envelope
+    min_rate_span_ns : fit a rate only over at least this much device time; shorter: rate 1
+    offset_span_ns : with rate 1 for want of span, the line touches the lowest point of only the
+        newest this much device time (a drift of d ppm then errs by at most d * offset_span)
 
     The chosen hull edge is the one spanning the window's mean device time,
     which maximises the line's mean height (the LP optimum), so it is the
     most accurate over the window. A rate outside 1 ± MAX_DRIFT falls back to
-    rate 1 (too few points to see drift, or a clock that was reset).
+    rate 1 (too few points to see drift, or a clock that was reset). Over a
+    short window the slope is mostly the delay floor's own change (delays
+    settling after a start, a host's load coming and going): a floor 1 ms
+    lower 5 s later reads as 200 ppm, extrapolated to the newest events; a
+    caller whose floor may move asks for ``min_rate_span_ns`` (30 s makes
+    that 33 ppm), and meanwhile for a recent ``offset_span_ns``.
     """
     d = np.asarray(t_device, dtype=np.float64).ravel()
     h = np.asarray(t_host, dtype=np.float64).ravel()
@@ -92,7 +107,10 @@ def fit_lower_envelope(t_device: ArrayLike, t_host: ArrayLike, min_latency_ns: f
     x, y = d - d_ref, h - h_ref  # small numbers: no precision loss in the cross products
     rate = 1.0
     intercept = float(np.min(y - x))
-    if d.size >= 3 and x[-1] > 0:
+    if d.size >= 3 and x[-1] > 0 and x[-1] < min_rate_span_ns:
+        recent = x >= x[-1] - offset_span_ns
+        intercept = float(np.min(y[recent] - x[recent]))
+    elif d.size >= 3 and x[-1] > 0:
         hull = _lower_hull(x, y)
         x_mean = float(np.mean(x))
         for a, b in itertools.pairwise(hull):
@@ -120,21 +138,34 @@ class ClockMapper:
     time) pairs and asks for host times; no clock is read here.
     """
 
-    def __init__(self, window: int = 300, min_latency_ns: float = 0.0, refit_every: int = 10) -> None:
+    def __init__(self, window: int = 300, min_latency_ns: float = 0.0, refit_every: int = 10,
+                 min_rate_span_ns: float = 0.0, offset_span_ns: float = np.inf) -> None:
         if window < 2:
             raise ValueError("window must hold at least 2 events")
         self._d: deque[float] = deque(maxlen=window)
         self._h: deque[float] = deque(maxlen=window)
         self.min_latency_ns = float(min_latency_ns)
+        self.min_rate_span_ns = float(min_rate_span_ns)
+        self.offset_span_ns = float(offset_span_ns)
         self._refit_every = max(1, refit_every)
         self._since_fit = 0
         self._fit: ClockFit | None = None
 
     def add(self, t_device: float, t_host_arrival: float) -> None:
-        """Record one event; a device clock that jumps back (a camera reset) restarts the window."""
-        if self._d and t_device < self._d[-1]:
+        """Record one event; a device clock that jumps back (a camera reset) restarts the window.
+
+        An event less than ``RESET_JUMP_NS`` older than the newest is one that arrived out of order
+        (a package overtaken by the next): it is left out, not taken for a reset. Compared as
+        stored (float): an integer stamp above 2**53 ns (a device clock counting from 1970 does)
+        rounds, and Python compares an int with the float it rounded to exactly, so the same stamp
+        given twice would otherwise read as a jump back.
+        """
+        d = float(t_device)
+        if self._d and d < self._d[-1]:
+            if self._d[-1] - d < RESET_JUMP_NS:
+                return
             self.reset()
-        self._d.append(float(t_device))
+        self._d.append(d)
         self._h.append(float(t_host_arrival))
         self._since_fit += 1
         # the envelope only moves when a new low point arrives or the window slides; refitting every
@@ -143,7 +174,8 @@ class ClockMapper:
             self._refit()
 
     def _refit(self) -> None:
-        self._fit = fit_lower_envelope(np.fromiter(self._d, float), np.fromiter(self._h, float), self.min_latency_ns)
+        self._fit = fit_lower_envelope(np.fromiter(self._d, float), np.fromiter(self._h, float), self.min_latency_ns,
+                                       self.min_rate_span_ns, self.offset_span_ns)
         self._since_fit = 0
 
     def reset(self) -> None:

@@ -73,3 +73,68 @@ def test_without_device_timestamps_pairing_falls_back_to_arrival_time():
     assert source == "arrival" and t == 10_000_000_000 - 1_000_000 - 3_000_000
     p = pairer.pair(frame, RobotHistory(10))
     assert p.T_base_flange is None and "no robot sample" in p.reason
+
+
+def _frame(seq: int, t_device_ns: int, t_host_ns: int):
+    from drivers.base import Frame
+
+    return Frame(np.zeros((4, 4), np.uint8), seq, t_host_ns=t_host_ns, t_device_ns=t_device_ns, exposure_us=2000.0)
+
+
+def test_one_frame_adds_exactly_one_point_to_the_camera_clock():
+    from drivers.history import RobotHistory
+
+    pairer = FramePairer(camera_transport_latency_s=0.0005)
+    for seq in range(5):
+        frame = _frame(seq, 1_000_000_000 + seq * 50_000_000, 2_000_000_000 + seq * 50_000_000 + 3_000_000)
+        first = pairer.exposure_instant_ns(frame)  # the processor asks, then pair() asks again
+        p = pairer.pair(frame, RobotHistory(10))
+        assert pairer.camera_clock.n == seq + 1
+        assert (p.t_exposure_host_ns, p.source) == first
+
+
+def test_a_device_clock_counting_from_1970_keeps_its_window():
+    # GigE Vision stand-ins and many cameras stamp in ns since 1970: above 2**53, where floats round
+    from service.core.timesync import ClockMapper
+
+    mapper = ClockMapper(min_latency_ns=0.5e6)
+    t0_device, t0_host = 1_796_142_625_761_890_000, 518_000_000_000
+    for k in range(40):
+        t_device = t0_device + k * 50_000_000 + (k * 7919) % 1000 * 1000
+        for _ in range(2):  # the same stamp twice is no clock reset
+            mapper.add(t_device, t0_host + (t_device - t0_device) + 2_000_000 + (k % 5) * 1_000_000)
+    assert mapper.n == 80
+    # the envelope touches the lowest delay (2 ms) minus the stated latency
+    assert abs(mapper.host_from_device(t0_device) - (t0_host + 1_500_000)) < 1e3
+
+
+def test_an_event_out_of_order_is_left_out_not_taken_for_a_reset():
+    # a robot package overtaken by the next one (its arrival jittered): its controller time is one tick back
+    from service.core.timesync import ClockMapper
+
+    mapper = ClockMapper(window=2000, min_latency_ns=1e5, refit_every=50)
+    t_robot = np.arange(500) * 2e6
+    arrival = 7e9 + t_robot + 1e5 + (np.arange(500) % 7) * 3e4
+    order = np.arange(500)
+    order[[200, 201]] = order[[201, 200]]
+    for k in order:
+        mapper.add(t_robot[k], arrival[k])
+    assert mapper.n == 499
+    assert abs(mapper.host_from_device(t_robot[-1]) - (7e9 + t_robot[-1])) < 1e3
+
+
+def test_camera_clock_rides_out_a_delay_floor_that_drops_after_the_start():
+    # a host settling after a start: frames arrive 1.2 ms later for the first seconds. Over a short
+    # window the lower envelope would read that as a drift of hundreds of ppm and extrapolate it
+    # (1.3 ms off after 12 s); the camera mapping fits a rate only over half a minute or more.
+    pairer = FramePairer(camera_transport_latency_s=0.0003)
+    worst_ns = 0.0
+    for seed in range(50):
+        rng = np.random.default_rng(seed)
+        pairer.camera_clock.reset()
+        t = np.arange(60) * 0.2e9 + 1e12  # 5 frames a second, the device clock = host clock
+        floor = np.where(t - t[0] < 4e9, 1.5e6, 0.3e6)
+        for ti, ai in zip(t, t + floor + rng.exponential(2e6, t.size), strict=True):
+            pairer.camera_clock.add(ti, ai)
+        worst_ns = max(worst_ns, abs(pairer.camera_clock.host_from_device(t[-1]) - t[-1]))
+    assert worst_ns < 0.3e6
