@@ -19,6 +19,7 @@ import json
 import math
 import os
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -91,11 +92,11 @@ def null_for_unknown(data: Any) -> Any:
     "not determined" (e.g. the sigma of a target left with fewer than two rays)."""
     if isinstance(data, float):
         return data if math.isfinite(data) else None
-    if isinstance(data, dict):
+    if isinstance(data, Mapping):
         return {k: null_for_unknown(v) for k, v in data.items()}
     if isinstance(data, list | tuple):
         return [null_for_unknown(v) for v in data]
-    return data
+    return null_for_unknown(data.tolist()) if hasattr(data, "tolist") else data  # numpy arrays and scalars
 
 
 def _read_text(path: str | os.PathLike[str]) -> str:

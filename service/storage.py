@@ -45,6 +45,8 @@ from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any, Literal
 
+from service.formats import null_for_unknown
+
 log = logging.getLogger(__name__)
 
 __all__ = ["CSV_COLUMNS", "EVENT_LEVELS", "SCHEMA_VERSION", "MeasurementStore", "StorageError", "StoreFull",
@@ -134,22 +136,12 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"{type(o).__name__} is not JSON serialisable")
 
 
-def _finite(o: Any) -> Any:
-    if isinstance(o, float):
-        return o if math.isfinite(o) else None
-    if isinstance(o, Mapping):
-        return {k: _finite(v) for k, v in o.items()}
-    if isinstance(o, list | tuple):
-        return [_finite(v) for v in o]
-    return _finite(o.tolist()) if hasattr(o, "tolist") else o
-
-
 def _dumps(obj: Any) -> str:
     """Compact strict JSON; NaN and infinities (no JSON for them) become null."""
     try:
         return json.dumps(obj, default=_json_default, separators=(",", ":"), allow_nan=False)
     except ValueError:  # rare: only then pay for the walk
-        return json.dumps(_finite(obj), default=_json_default, separators=(",", ":"), allow_nan=False)
+        return json.dumps(null_for_unknown(obj), default=_json_default, separators=(",", ":"), allow_nan=False)
 
 
 def _real(x: Any) -> float | None:
