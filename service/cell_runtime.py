@@ -215,7 +215,8 @@ class CellRuntime:
         if self.standins:
             # frames rendered ahead leave right after their exposure: copy and loopback transfer
             cfg.transport_latency_s = STANDIN_CAMERA_LATENCY_S
-            return "aravis", {"device": GV_ADDRESS, "packet_size": 8192}
+            # a UDP socket: arrival stamps within ~0.3 ms (the packet-socket ring batches for 5 ms)
+            return "aravis", {"device": GV_ADDRESS, "packet_size": 8192, "packet_socket": False}
         return "sim", {"cell": self.cell, "epoch_ns": self.epoch_ns, **cfg.options}
 
     def robot_driver(self) -> tuple[str, dict[str, Any]]:

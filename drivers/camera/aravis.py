@@ -23,9 +23,12 @@ scaled to ns by Aravis). ``t_host_ns`` is when the leader reached Aravis' stream
 thread (its ``CLOCK_REALTIME`` system timestamp, ``meta["system_timestamp_ns"]``,
 put on the monotonic clock by ``drivers.timing.arrival_ns``), not the pop
 (``meta["t_popped_ns"]``), which waits for the GIL that numba kernels hold for
-milliseconds. That thread runs at nice -10 where allowed and reads a UDP socket,
-not Aravis' packet-socket ring, which hands packets over every 5 ms or 2 MiB
-(``packet_socket=True``: less CPU per packet, stamps up to 5 ms late).
+milliseconds. That thread runs at nice -10 where allowed. By default it reads
+Aravis' packet-socket ring (its fast path), which hands packets over every 5 ms
+or 2 MiB, so stamps may be up to 5 ms late; ``packet_socket=False`` reads a UDP
+socket instead (stamps within ~0.3 ms; the simulated cell's stand-ins use it), at
+more CPU per packet and, under load, with triggered frames lost here to the
+socket's small default buffer.
 """
 
 from __future__ import annotations
@@ -126,8 +129,8 @@ class AravisCamera:
     socket_buffer_bytes : the stream's receive socket buffer; None lets Aravis size it by payload.
     packet_resend : ask the camera to resend lost packets (GigE Vision).
     reconnect_interval_s : the least time between two reconnection attempts after a loss.
-    packet_socket : receive through Aravis' packet-socket ring (less CPU per packet, arrival
-        stamps up to 5 ms late; see the module note) instead of a UDP socket.
+    packet_socket : receive through Aravis' packet-socket ring (the default: less CPU per packet,
+        arrival stamps up to 5 ms late; see the module note) rather than a UDP socket.
 
     ``CameraSettings.strobe = None`` puts out the ring light this driver switched on earlier
     (that line's ``LineSource`` goes ``Off``) and otherwise leaves the camera's lines alone, as
@@ -143,7 +146,7 @@ class AravisCamera:
         socket_buffer_bytes: int | None = 4 * _MiB,
         packet_resend: bool = True,
         reconnect_interval_s: float = 1.0,
-        packet_socket: bool = False,
+        packet_socket: bool = True,
     ) -> None:
         if n_buffers < 2:
             raise ValueError(f"n_buffers must be at least 2, got {n_buffers}")

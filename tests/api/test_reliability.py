@@ -175,8 +175,12 @@ def test_garbled_frames_give_failures_not_poses(live):
         assert r.status_code == 200 and m["ok"] is False and m["reason"] != "stale", m  # a measured failure
     finally:
         _fault(live, "camera", "plug")
+    # a frame exposed after the request may have been rendered (garbled) before the plug: the
+    # poses come back within a few frames
+    deadline = time.monotonic() + 5.0
     with live.client() as c:
-        assert c.post("/measure", json={"timeout_s": 5}).json()["ok"] is True
+        while not c.post("/measure", json={"timeout_s": 5}).json()["ok"]:
+            assert time.monotonic() < deadline, "no pose after the garbled frames ended"
 
 
 @pytest.mark.slow
