@@ -22,6 +22,7 @@ STATUS: dict[str, int] = {
     Reason.robot_disconnected: 503,
     Reason.not_calibrated: 409,
     Reason.timeout: 504,
+    Reason.solver_unavailable: 503,
     Reason.no_frame: 504,
     "unauthorized": 401,
     "not_found": 404,

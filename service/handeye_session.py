@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -43,6 +44,9 @@ class SessionError(Exception):
     def __init__(self, reason: str, message: str) -> None:
         super().__init__(message)
         self.reason, self.message = reason, message
+
+    def __reduce__(self) -> tuple[Any, ...]:  # raised in the solver process, re-raised in the service's
+        return (type(self), (self.reason, self.message))
 
 
 @dataclass
@@ -153,51 +157,13 @@ class HandEyeSession:
 
     # --- 3. solve and apply -------------------------------------------------------------------
 
-    def solve(self, camera: BrownFraser | None = None, target_field: Field | None = None) -> dict[str, Any]:
-        """Tsai–Lenz + pose-level refinement; then, given the camera and field, the refinement on the
-        image observations with the robot's errors as unknowns (the stored answer when it converges)."""
+    def solve(self, camera: BrownFraser | None = None, target_field: Field | None = None,
+              run: Callable[..., dict[str, Any]] | None = None) -> dict[str, Any]:
+        """:func:`solve_samples` over the recorded samples, by ``run(fn, *args)`` if given (the
+        service's solver process) and stored as the session's result."""
         with self.lock:
             samples = list(self.samples)
-        if len(samples) < 3:
-            raise SessionError(
-                Reason.poor_motion, f"{len(samples)} samples recorded; at least 3 are needed, 8 or more advised"
-            )
-        P = np.array([s.T_base_flange for s in samples])
-        C = np.array([s.T_field_camera for s in samples])
-        sig_pos = float(np.median([np.mean(s.sigma_position_mm) for s in samples]))
-        sig_rot = float(np.median([np.mean(s.sigma_rotation_deg) for s in samples]))
-        try:
-            res = calibrate_handeye(P, C, sigma_camera_position_mm=max(sig_pos, 1e-3),
-                                    sigma_camera_rotation_deg=max(sig_rot, 1e-4))
-        except SolveError as e:
-            raise SessionError(e.reason, e.message) from None
-        out = {"ok": True, **res.to_dict(), "n_samples": len(samples), "method": "pose-level"}
-        if camera is not None and target_field is not None and all(s.uv is not None and len(s.ids) >= 4
-                                                                    for s in samples):
-            img = [ImageSample(s.T_base_flange, target_field.xyz[target_field.indices_of(s.ids)], s.uv)
-                   for s in samples]
-            try:
-                ref = refine_handeye_on_images(camera, img, res.T_flange_camera, res.T_base_field,
-                                               sigma_px=max(0.01, float(np.median([s.rms_px for s in samples]))))
-            except SolveError as e:
-                out["warnings"] = [*out["warnings"], f"image-level refinement failed: {e.message}"]
-            else:
-                if ref.converged:
-                    out.update(
-                        method="image-level",
-                        T_flange_camera=ref.T_flange_camera.tolist(),
-                        T_base_field=ref.T_base_field.tolist(),
-                        sigma_flange_camera_position_mm=ref.sigma_flange_camera_position_mm.tolist(),
-                        sigma_flange_camera_rotation_deg=ref.sigma_flange_camera_rotation_deg.tolist(),
-                        sigma_base_field_position_mm=ref.sigma_base_field_position_mm.tolist(),
-                        sigma_base_field_rotation_deg=ref.sigma_base_field_rotation_deg.tolist(),
-                        robot_error_position_mm=ref.robot_error_position_mm.tolist(),
-                        robot_error_rotation_deg=ref.robot_error_rotation_deg.tolist(),
-                        rms_px_per_sample=ref.rms_px.tolist(),
-                        sigma0_images=ref.sigma0,
-                        pose_level={"T_flange_camera": res.T_flange_camera.tolist(),
-                                    "T_base_field": res.T_base_field.tolist()},
-                    )
+        out = (run or _call)(solve_samples, samples, camera, target_field)
         with self.lock:
             self.result = out
         return out
@@ -234,3 +200,53 @@ class HandEyeSession:
         with self.lock:
             return {"samples": [s.to_dict() for s in self.samples]}
 
+
+def _call(fn: Callable[..., dict[str, Any]], *args: Any) -> dict[str, Any]:
+    return fn(*args)
+
+
+def solve_samples(samples: list[Sample], camera: BrownFraser | None = None,
+                  target_field: Field | None = None) -> dict[str, Any]:
+    """Tsai–Lenz + pose-level refinement; then, given the camera and field, the refinement on the
+    image observations with the robot's errors as unknowns (the answer when it converges)."""
+    if len(samples) < 3:
+        raise SessionError(
+            Reason.poor_motion, f"{len(samples)} samples recorded; at least 3 are needed, 8 or more advised"
+        )
+    P = np.array([s.T_base_flange for s in samples])
+    C = np.array([s.T_field_camera for s in samples])
+    sig_pos = float(np.median([np.mean(s.sigma_position_mm) for s in samples]))
+    sig_rot = float(np.median([np.mean(s.sigma_rotation_deg) for s in samples]))
+    try:
+        res = calibrate_handeye(P, C, sigma_camera_position_mm=max(sig_pos, 1e-3),
+                                sigma_camera_rotation_deg=max(sig_rot, 1e-4))
+    except SolveError as e:
+        raise SessionError(e.reason, e.message) from None
+    out = {"ok": True, **res.to_dict(), "n_samples": len(samples), "method": "pose-level"}
+    if camera is not None and target_field is not None and all(s.uv is not None and len(s.ids) >= 4
+                                                                for s in samples):
+        img = [ImageSample(s.T_base_flange, target_field.xyz[target_field.indices_of(s.ids)], s.uv)
+               for s in samples]
+        try:
+            ref = refine_handeye_on_images(camera, img, res.T_flange_camera, res.T_base_field,
+                                           sigma_px=max(0.01, float(np.median([s.rms_px for s in samples]))))
+        except SolveError as e:
+            out["warnings"] = [*out["warnings"], f"image-level refinement failed: {e.message}"]
+        else:
+            if ref.converged:
+                out.update(
+                    method="image-level",
+                    T_flange_camera=ref.T_flange_camera.tolist(),
+                    T_base_field=ref.T_base_field.tolist(),
+                    sigma_flange_camera_position_mm=ref.sigma_flange_camera_position_mm.tolist(),
+                    sigma_flange_camera_rotation_deg=ref.sigma_flange_camera_rotation_deg.tolist(),
+                    sigma_base_field_position_mm=ref.sigma_base_field_position_mm.tolist(),
+                    sigma_base_field_rotation_deg=ref.sigma_base_field_rotation_deg.tolist(),
+                    robot_error_position_mm=ref.robot_error_position_mm.tolist(),
+                    robot_error_rotation_deg=ref.robot_error_rotation_deg.tolist(),
+                    rms_px_per_sample=ref.rms_px.tolist(),
+                    sigma0_images=ref.sigma0,
+                    pose_level={"T_flange_camera": res.T_flange_camera.tolist(),
+                                "T_base_field": res.T_base_field.tolist()},
+                )
+    return out

@@ -46,6 +46,7 @@ from service.core.results import Failure, Reason
 from service.measure_frame import CameraProcessor
 from service.rig_processing import RIG, RigCombiner
 from service.settings import CameraConfig, ProcessingConfig, Settings
+from service.solver_process import SolverProcess
 from service.storage import StorageError
 
 log = logging.getLogger(__name__)
@@ -102,6 +103,7 @@ class Worker:
         self.processing_ready = False
         self.rig = RigCombiner([c.name for c in settings.cameras], settings.processing.rig_sync_tolerance_s)
         self.handeye_session: Any = None  # service.handeye_session.HandEyeSession while one runs
+        self.solver = SolverProcess()  # the API's long solves; its child starts with the first session or solve
 
     # --- lifecycle -----------------------------------------------------------------------------
 
@@ -132,6 +134,7 @@ class Worker:
             except DriverError as e:
                 log.warning("closing robot: %s", e)
         self.cell.stop()
+        self.solver.stop()
         with self._lock:
             for _, _, fut in self._waiters:
                 if not fut.done():

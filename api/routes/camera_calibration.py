@@ -13,6 +13,7 @@ the next frame.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Annotated, Any
 
 import numpy as np
@@ -27,6 +28,7 @@ from service.core.bundle import ImagePoints, calibrate_camera
 from service.core.camera_model import PARAMETER_NAMES
 from service.core.results import Reason, SolveError
 from service.formats import MAX_IMAGE_PX, FormatError
+from service.solver_process import SolverCrashed
 
 router = APIRouter(prefix="/calibration/camera", tags=["camera calibration"])
 
@@ -75,9 +77,11 @@ def solve(worker: WorkerDep, req: SolveRequest | None = None, apply: bool = Fals
         raise ApiError(Reason.bad_input, f"targets not in the field: {sorted(unknown_ids)[:10]}")
     free = tuple(p for p in PARAMETER_NAMES if p not in req.fix)
     try:
-        result = calibrate_camera(cal.camera, cal.field, images, free=free)
+        result = worker.solver.run(partial(calibrate_camera, free=free), cal.camera, cal.field, images)
     except SolveError as e:
         raise ApiError(str(e.reason), e.message, status=422) from None
+    except SolverCrashed as e:
+        raise ApiError(Reason.solver_unavailable, f"{e}; solve again", status=503) from None
     payload = camera_json(result)
     version = None
     if apply:

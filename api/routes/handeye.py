@@ -23,6 +23,7 @@ from api.security import Authorized
 from service.core.results import Reason, SolveError
 from service.formats import FormatError
 from service.handeye_session import HandEyeSession, SessionError
+from service.solver_process import SolverCrashed
 
 router = APIRouter(prefix="/calibration/handeye/session", tags=["hand-eye calibration"])
 
@@ -58,6 +59,7 @@ def start(worker: WorkerDep, req: StartRequest | None = None) -> dict[str, Any]:
         worker.handeye_session = HandEyeSession.start(worker, camera, req.n_poses)
     except SessionError as e:
         raise _err(e) from None
+    worker.solver.start()  # the solve at the end of the session finds its process ready
     worker.event("info", "handeye_session", f"hand-eye session started with {req.n_poses} proposed poses")
     return worker.handeye_session.summary()
 
@@ -114,7 +116,7 @@ def remove(index: int, worker: WorkerDep) -> dict[str, Any]:
 def solve(worker: WorkerDep, apply: bool = False) -> dict[str, Any]:
     s = _session(worker)
     try:
-        result = s.solve(worker.calibration.camera, worker.calibration.field)
+        result = s.solve(worker.calibration.camera, worker.calibration.field, run=worker.solver.run)
         if apply:
             try:
                 s.applied_version = worker.calibration.update("handeye", s.handeye_payload(), note="hand-eye session")
@@ -123,6 +125,8 @@ def solve(worker: WorkerDep, apply: bool = False) -> dict[str, Any]:
             worker.event("info", "calibration_changed", f"hand-eye version {s.applied_version} from a session")
     except SessionError as e:
         raise _err(e) from None
+    except SolverCrashed as e:
+        raise ApiError(Reason.solver_unavailable, f"{e}; the samples are kept, solve again", status=503) from None
     return {**result, "applied_version": s.applied_version}
 
 

@@ -31,6 +31,7 @@ class Reason(StrEnum):
     timeout = "timeout"
     stale = "stale"  # the newest result is older than a few frame periods: nothing current to serve
     storage_unavailable = "storage_unavailable"  # measured, but not committed: not acknowledged
+    solver_unavailable = "solver_unavailable"  # the child process of the long solves died during one
 
 
 class SolveError(Exception):
@@ -41,6 +42,9 @@ class SolveError(Exception):
         self.reason = reason
         self.message = message
         self.details = details or {}
+
+    def __reduce__(self) -> tuple[Any, ...]:  # raised in the solver process, re-raised in the service's
+        return (type(self), (self.reason, self.message, self.details))
 
 
 @dataclass(frozen=True)
