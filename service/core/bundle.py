@@ -31,8 +31,9 @@ views rolled by 90 degrees). A weak roll diversity short of that is a warning.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -188,7 +189,7 @@ class BundleResult:
     residuals_px: Array
     inliers: NDArray[np.bool_]
     warnings: tuple[str, ...]
-    datum: dict[str, Any] = field(default_factory=dict)
+    datum: dict[str, Any] = dataclasses.field(default_factory=dict)
     residual_space: str = "pixel"
     n_iter: int = 0
     converged: bool = True
@@ -426,7 +427,7 @@ def calibrate_camera(
     T0, p0 = orient_views([camera], np.zeros(len(images), np.int64), views, net.nominal, T_init)
     oriented = np.array([T is not None for T in T0])
     for j in np.flatnonzero(~oriented):
-        warnings.append(f"image {images[j].name!r} could not be oriented (too few known targets) and is left out")
+        warnings.append(f"image {images[int(j)].name!r} could not be oriented (too few known targets) and is left out")
     if oriented.sum() < MIN_IMAGES:
         raise _too_few_images(int(oriented.sum()), "oriented ")
     known = np.all(np.isfinite(p0), axis=1)
@@ -436,7 +437,7 @@ def calibrate_camera(
     img_map = np.cumsum(oriented) - 1
     station = img_map[net.image[keep]]
     point, uv = net.point[keep], net.uv[keep]
-    kept_images = [images[j] for j in np.flatnonzero(oriented)]
+    kept_images = [images[int(j)] for j in np.flatnonzero(oriented)]
     stations = np.array([params_from_T(inv_T(T)) for T in T0 if T is not None])
 
     # -- datum
@@ -448,11 +449,11 @@ def calibrate_camera(
         missing = [t for t in datum.control if t not in field.index]
         if missing:
             raise SolveError(Reason.bad_input, f"Control points {missing[:5]} are not in the field.")
-        rows = [index[t] for t in datum.control if t in index and known[index[t]]]
+        rows = np.array([index[t] for t in datum.control if t in index and known[index[t]]], dtype=np.int64)
         if len(rows) < 3 or np.linalg.matrix_rank(p0[rows] - p0[rows].mean(0), tol=1e-6) < 2:
             raise SolveError(Reason.bad_input, "The datum needs at least 3 observed, non-collinear control points.")
         for i in rows:
-            control[i] = (net.nominal[i], float(datum.control_sigma_mm))
+            control[int(i)] = (net.nominal[i], float(datum.control_sigma_mm))
             if datum.control_sigma_mm <= 0:
                 point_free[i] = False
                 p0[i] = net.nominal[i]
@@ -551,7 +552,7 @@ def _result(sol: NetworkSolution, network: NetworkInput, net: _Network, kept: li
     ss = np.bincount(network.point[inl], weights=np.sum(res[inl] ** 2, axis=1), minlength=n_pts)
     target_rms = np.sqrt(ss / np.maximum(2 * n_rays, 1))
     target_rms[n_rays == 0] = np.nan
-    for i in np.flatnonzero(network.point_free & ~sol.point_used):
+    for i in np.flatnonzero(network.point_free & ~sol.point_used).tolist():
         warnings.append(f"target {net.ids[i]!r} kept fewer than two rays after rejections and is not adjusted")
     refined = Field(name=name, ids=tuple(net.ids), xyz=sol.points,
                     codes=np.array(net.codes, dtype=np.int64), diameters_mm=np.array(net.diameters))

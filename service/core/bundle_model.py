@@ -127,8 +127,8 @@ def inner_constraint_matrix(p_nominal: Array, n_gauge: int) -> Array:
     C[3:6] = np.transpose(skew3(q), (2, 0, 1))  # rows of sum_i q_i x dp_i
     if n_gauge == 7:
         C[6] = q
-    C = C.reshape(n_gauge, 3 * n)
-    return C / np.linalg.norm(C, axis=1, keepdims=True)
+    rows = C.reshape(n_gauge, 3 * n)
+    return rows / np.linalg.norm(rows, axis=1, keepdims=True)
 
 
 class BundleModel:

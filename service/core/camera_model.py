@@ -75,7 +75,8 @@ class BrownFraser:
     def with_params(self, values: ArrayLike) -> BrownFraser:
         """A copy with the ten parameters replaced (order of :data:`PARAMETER_NAMES`)."""
         v = np.asarray(values, dtype=np.float64).reshape(len(PARAMETER_NAMES))
-        return replace(self, **{n: float(x) for n, x in zip(PARAMETER_NAMES, v, strict=True)})
+        values_by_name: dict[str, Any] = {n: float(x) for n, x in zip(PARAMETER_NAMES, v, strict=True)}
+        return replace(self, **values_by_name)
 
     @property
     def mean_pixel_size_mm(self) -> float:

@@ -54,6 +54,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 from functools import lru_cache
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -68,6 +69,7 @@ from service.core.noise_kernel import box_peak_kernel, tile_noise_kernel
 from service.core.results import Reason, SolveError
 
 Array = NDArray[np.float64]
+Image = NDArray[np.uint8] | NDArray[np.uint16]  # a frame, once _check_image has accepted it
 f32, f64 = np.float32, np.float64
 
 REASONS = ("saturated", "cut_off", "merged_or_misshapen", "too_small", "too_big", "low_contrast", "ring",
@@ -205,8 +207,8 @@ class Rejections:
         return {r: int(c) for r, c in zip(REASONS, n, strict=True)}
 
 
-def _check_image(image: NDArray[np.generic]) -> NDArray[np.generic]:
-    img = np.asarray(image)
+def _check_image(image: NDArray[np.generic]) -> Image:
+    img: Any = np.asarray(image)
     if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16):
         raise SolveError(Reason.bad_image,
                          f"Expected a 2-D uint8 or uint16 image, got {img.dtype} of shape {img.shape}.")
@@ -218,7 +220,7 @@ def _check_image(image: NDArray[np.generic]) -> NDArray[np.generic]:
 _DTYPE_MAX = {np.dtype(t).char: float(np.iinfo(t).max) for t in (np.uint8, np.uint16)}  # np.iinfo is slow per call
 
 
-def _levels(img: NDArray[np.generic], settings: DetectSettings) -> tuple[float, float, float]:
+def _levels(img: Image, settings: DetectSettings) -> tuple[float, float, float]:
     """(saturation level, contrast threshold, segmentation level) in the image's DN."""
     full = float(_DTYPE_MAX[img.dtype.char] if settings.saturation_dn is None else settings.saturation_dn)
     if not full > 0:
@@ -243,7 +245,7 @@ class _Background:
         return grid[np.minimum(v // COARSE_STEP, hs - 1), np.minimum(u // COARSE_STEP, ws - 1)].astype(f64)
 
 
-def _background(img: NDArray[np.generic], full_dn: float, seg_dn: float) -> _Background:
+def _background(img: Image, full_dn: float, seg_dn: float) -> _Background:
     """Background, noise and segmentation level of a full frame (see the module docstring)."""
     h, w = img.shape
     small = cv2.resize(img, (w // COARSE_STEP, h // COARSE_STEP), interpolation=cv2.INTER_LINEAR)
@@ -261,23 +263,28 @@ def _background(img: NDArray[np.generic], full_dn: float, seg_dn: float) -> _Bac
     noise = cv2.resize(tiles.astype(f32), (tiles.shape[1] * per, tiles.shape[0] * per),
                        interpolation=cv2.INTER_LINEAR)[:bg.shape[0], :bg.shape[1]]
     seg = np.maximum(f32(K_SEG) * noise, f32(seg_dn))
-    return _Background(bg, noise, seg, tiles)
+    return _Background(cast(NDArray[np.float32], bg), noise, seg, tiles)
 
 
-def _foreground(img: NDArray[np.generic], back: _Background,
+def _foreground(img: Image, back: _Background,
                 out: NDArray[np.uint8] | None = None) -> NDArray[np.uint8]:
     """0/255 mask of the pixels brighter than the coarse background plus its segmentation level,
     in ``out`` if given."""
     h, w = img.shape
     thr_c = back.level + back.seg
     lo, hi = float(thr_c.min()), float(thr_c.max())
+    mask: Any  # OpenCV's MatLike: the 0/255 uint8 mask
     if hi - lo <= FLAT_BACKGROUND_FRACTION * float(back.seg.min()):
-        return cv2.compare(img, hi, cv2.CMP_GT, dst=out)
-    thr = np.minimum(np.rint(thr_c), np.iinfo(img.dtype).max).astype(img.dtype)
+        mask = cv2.compare(img, hi, cv2.CMP_GT, dst=out)  # type: ignore[call-overload]  # dst may be None
+        return cast(NDArray[np.uint8], mask)
+    thr = np.minimum(np.rint(thr_c), _DTYPE_MAX[img.dtype.char]).astype(img.dtype)
     if out is not None and img.dtype == np.uint8:  # the full-size threshold in ``out``, compared in place
         thr_full = cv2.resize(thr, (w, h), dst=out, interpolation=cv2.INTER_LINEAR)
-        return cv2.compare(img, thr_full, cv2.CMP_GT, dst=out)
-    return cv2.compare(img, cv2.resize(thr, (w, h), interpolation=cv2.INTER_LINEAR), cv2.CMP_GT, dst=out)
+        mask = cv2.compare(img, thr_full, cv2.CMP_GT, dst=out)
+    else:
+        thr_full = cv2.resize(thr, (w, h), interpolation=cv2.INTER_LINEAR)
+        mask = cv2.compare(img, thr_full, cv2.CMP_GT, dst=out)
+    return cast(NDArray[np.uint8], mask)
 
 
 @dataclass(frozen=True)
@@ -301,7 +308,7 @@ def _contours(mask: NDArray[np.uint8]) -> _Contours:
     found, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     if not found:
         z2, z = np.zeros((0, 2), np.intp), np.zeros(0)
-        return _Contours(np.zeros((0, 4), np.intp), z, z, z2 * 1.0, np.zeros((0, 3)), z2, np.zeros(0, np.intp))
+        return _Contours(np.zeros((0, 4), np.intp), z, z, np.zeros((0, 2)), np.zeros((0, 3)), z2, np.zeros(0, np.intp))
     lengths = np.fromiter(map(len, found), dtype=np.intp, count=len(found))
     pts = np.concatenate(found).reshape(-1, 2)
     starts = np.cumsum(lengths) - lengths
@@ -587,7 +594,7 @@ def measure_windows(image: NDArray[np.generic], uv_predicted: NDArray[np.float64
     half = np.broadcast_to(np.asarray(half_size_px, dtype=np.intp), (uv.shape[0],))
     if half.size and half.min() < 2:
         raise ValueError("half_size_px must be at least 2")
-    finite = np.isfinite(uv).all(axis=1)
+    finite = np.asarray(np.isfinite(uv).all(axis=1))
     c = np.rint(np.where(finite[:, None], uv, -1e6)).astype(np.intp).T.copy()  # rows cu, cv
     noise_dn = settings.noise_dn
     if noise_dn is not None and noise_dn > 0:

@@ -175,11 +175,11 @@ def _window(P, pv, ph, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, 
     for a in range(s):
         dv = a - h
         wa, wia, row = w[a], wi[a], P[pv + a]
-        for du in range(-wa, -wia):
-            rb[k], ru[k], rv[k] = row[ph + h + du], du, dv
+        for ku in range(-wa, -wia):
+            rb[k], ru[k], rv[k] = row[ph + h + ku], ku, dv
             k += 1
-        for du in range(max(wia + 1, -wia), wa + 1):
-            rb[k], ru[k], rv[k] = row[ph + h + du], du, dv
+        for ku in range(max(wia + 1, -wia), wa + 1):
+            rb[k], ru[k], rv[k] = row[ph + h + ku], ku, dv
             k += 1
     s0 = s1 = s2 = sbb = ruu = 0.0
     for j in range(k):

@@ -15,6 +15,7 @@ ideal coordinates (the centre of the image conic) and removed.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -75,6 +76,19 @@ def match_predicted(
                         np.require(blob_uv, np.float64, ["C", "W"]).reshape(-1, 2), free, float(tolerance_px))
     ok = cand >= 0
     return Matches(rows[ok], cand[ok])
+
+
+@overload
+def project_field(
+    camera: BrownFraser, field: Field, T_field_camera: Array, margin_px: float = ..., *,
+    with_depth: Literal[False] = ...,
+) -> tuple[IntArray, Array]: ...
+
+
+@overload
+def project_field(
+    camera: BrownFraser, field: Field, T_field_camera: Array, margin_px: float = ..., *, with_depth: Literal[True]
+) -> tuple[IntArray, Array, Array]: ...
 
 
 def project_field(

@@ -93,7 +93,7 @@ def brown_from_opencv(
         y0_mm=float((K[1, 2] - (height - 1) / 2) * py),
     )
     uv = base.pixel_grid(*grid)
-    n = cv2.undistortPointsIter(
+    n = cv2.undistortPointsIter(  # type: ignore[call-overload]  # the stubs do not admit None for R and P
         uv.reshape(-1, 1, 2), K, dist, None, None, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
     ).reshape(-1, 2)
     free = ("c_mm", "x0_mm", "y0_mm", "K1", "K2", "K3", "P1", "P2", "B1")

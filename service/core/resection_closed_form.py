@@ -16,6 +16,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import cv2
 import numpy as np
@@ -298,7 +299,8 @@ def _pose_p3p_consensus(p: Array, n_img: Array, tol: float) -> Array | None:
     # in chunks, each chunk's solutions judged in one pass: per solution, numpy calls cost more
     # than the arithmetic; and a chunk may already hold a start good enough to stop at
     for chunk in np.array_split(triples, -(-len(triples) // P3P_CHUNK)):
-        rvecs, tvecs = [], []
+        rvecs: list[Any] = []  # OpenCV's MatLike
+        tvecs: list[Any] = []
         for sel in chunk:
             try:
                 _, r, t = cv2.solveP3P(np.ascontiguousarray(p[sel]), np.ascontiguousarray(n_img[sel]),
@@ -367,9 +369,9 @@ def fallback_starts(p: Array, xy: Array, c: float, tol_mm: float) -> Iterator[Ar
             T = make_T(_rotation_from_centre(p, xy, c, C), C)
             if _consensus(T, p, n_img, tol) >= majority:
                 yield T
-    T = _pose_p3p_consensus(p, n_img, tol)
-    if T is not None and _consensus(T, p, n_img, tol) >= majority:
-        yield T
+    T_p3p = _pose_p3p_consensus(p, n_img, tol)
+    if T_p3p is not None and _consensus(T_p3p, p, n_img, tol) >= majority:
+        yield T_p3p
 
 
 def resect_closed_form(camera: BrownFraser, p_field: ArrayLike, uv: ArrayLike) -> Array:
@@ -401,6 +403,8 @@ def resect_closed_form(camera: BrownFraser, p_field: ArrayLike, uv: ArrayLike) -
     xy = camera.ideal_from_pixel(q)
     spread = check_geometry(p, xy)
     c, tol_mm = camera.c_mm, CONSENSUS_PX * camera.mean_pixel_size_mm
+    best: Array | None
+    error: SolveError | None
     try:
         best, error = closed_form_ideal(p, xy, c, spread), None
     except SolveError as e:
@@ -408,7 +412,7 @@ def resect_closed_form(camera: BrownFraser, p_field: ArrayLike, uv: ArrayLike) -
     # without an adjustment to confirm it, a start stands when nearly all points agree with it,
     # else the one most points agree with
     count = -1 if best is None else _consensus(best, p, xy / c, tol_mm / c)
-    if len(p) - count <= CONFIRM_MAX_REJECTED * len(p):
+    if best is not None and len(p) - count <= CONFIRM_MAX_REJECTED * len(p):
         return best
     for T in fallback_starts(p, xy, c, tol_mm):
         k = _consensus(T, p, xy / c, tol_mm / c)

@@ -44,8 +44,9 @@ different choice of outliers.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -142,7 +143,7 @@ class RigCalibration:
     sigma_position_jackknife_mm: Array
     sigma_source: str
     warnings: tuple[str, ...] = ()
-    extra: dict[str, Any] = field(default_factory=dict)
+    extra: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """``rig.json``: what :func:`rig_from_dict` (and so :class:`Rig`) needs, plus the quality."""
@@ -318,7 +319,7 @@ def calibrate_rig(
         T_start.append(None if e < 0 else inv_T(_camera_from_field(stations_a[e], offsets, images[j].camera)))
     _, p0 = orient_views(list(cameras), view_cam, Views(view_idx_a, point_a, uv_a, len(images)), nominal, T_start)
     known = np.all(np.isfinite(p0), axis=1)
-    for i in np.flatnonzero(~known):
+    for i in np.flatnonzero(~known).tolist():
         warnings.append(f"target {ids[i]!r} is seen in fewer than two oriented images and is left out")
     keep = known[point_a]
     station = e_map[view_epoch[view_idx_a[keep]]]

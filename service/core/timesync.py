@@ -269,7 +269,7 @@ def estimate_time_offset_s(t_s: ArrayLike, p_measured_mm: ArrayLike, p_reported_
     n = t.size
     if n < 5 or pm.shape[0] != n or pr.shape[0] != n:
         raise ValueError(f"need >= 5 paired positions with matching times, got {n}")
-    v = np.gradient(pr, t, axis=0)  # mm/s
+    v = np.asarray(np.gradient(pr, t, axis=0))  # mm/s
     A = np.zeros((3 * n, 4))
     A[:, 0] = -v.ravel()
     A[:, 1:] = np.tile(np.eye(3), (n, 1))
@@ -285,7 +285,7 @@ def estimate_time_offset_s(t_s: ArrayLike, p_measured_mm: ArrayLike, p_reported_
     return TimeOffsetFit(
         offset_s=float(x[0]),
         sigma_s=float(np.sqrt(cov[0, 0])),
-        bias_mm=x[1:].copy(),
+        bias_mm=np.array(x[1:], dtype=np.float64),
         rms_mm=float(np.sqrt(np.mean(r.reshape(n, 3) ** 2) * 3)),
         n=n,
     )

@@ -587,7 +587,7 @@ def iso230_circle(
     n = samples_per_lap * int(laps)
     q_all = np.vstack([np.tile(q_lap, (int(laps), 1)), q_lap[:1]])
     t_all = np.arange(n + 1) * (period_s / samples_per_lap)
-    return JointTrajectory(t_all, q_all, mode="spline", periodic=True)
+    return JointTrajectory(np.asarray(t_all, dtype=np.float64), q_all, mode="spline", periodic=True)
 
 
 def random_workspace_poses(
