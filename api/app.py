@@ -93,8 +93,9 @@ def create_app(settings: Settings) -> FastAPI:
     # CORS (added last, so outermost) puts its headers on those refusals too
     app.add_middleware(EdgeGuard, rules=EdgeRules.of(settings.server), token=lambda: getattr(app.state, "token", None))
     if settings.server.cors_origins:
-        app.add_middleware(CORSMiddleware, allow_origins=settings.server.cors_origins, allow_methods=["*"],
-                           allow_headers=["*"])
+        app.add_middleware(
+            CORSMiddleware, allow_origins=settings.server.cors_origins, allow_methods=["*"], allow_headers=["*"]
+        )
     # the hand-eye session routes come before /calibration/{kind} so that their paths win
     for module in (health, measure, data, config, handeye, camera_calibration, calibration, sim):
         app.include_router(module.router)

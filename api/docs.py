@@ -27,9 +27,11 @@ from swagger_ui_bundle import swagger_ui_path
 
 ASSETS = "/docs/assets"
 _INLINE_SCRIPT = re.compile(r"<script>(.*?)</script>", re.DOTALL)
-_CSP = ("default-src 'self'; script-src 'self' {hashes}; style-src 'self'; "
-        "img-src 'self' data:; connect-src 'self'; object-src 'none'; base-uri 'none'; form-action 'self'; "
-        "frame-ancestors 'none'")
+_CSP = (
+    "default-src 'self'; script-src 'self' {hashes}; style-src 'self'; "
+    "img-src 'self' data:; connect-src 'self'; object-src 'none'; base-uri 'none'; form-action 'self'; "
+    "frame-ancestors 'none'"
+)
 
 
 def install(app: FastAPI) -> None:

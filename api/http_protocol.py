@@ -84,8 +84,12 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
             self._arm("body", self.limits.timeout_body_s)  # the application is behind, not the client
             return
         if not self.transport.is_closing():
-            log.debug("closing %s: no complete request %s within %.1f s", self.client, self._phase,
-                      self.limits.timeout_header_s if self._phase == "header" else self.limits.timeout_body_s)
+            log.debug(
+                "closing %s: no complete request %s within %.1f s",
+                self.client,
+                self._phase,
+                self.limits.timeout_header_s if self._phase == "header" else self.limits.timeout_body_s,
+            )
             self.transport.close()
 
     # -- the connection ------------------------------------------------------------------------------------
@@ -97,10 +101,17 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
             now = self.loop.time()
             if now - GuardedHttpToolsProtocol._last_refusal_log > 10.0:  # a flood must not flood the journal
                 GuardedHttpToolsProtocol._last_refusal_log = now
-                log.warning("refusing connections (from %s first): %d are open (server.limit_concurrency)",
-                            self.client, len(self.connections) - 1)
-            self._answer(503, "Service Unavailable", "busy",
-                         f"the service has {limit} connections open (server.limit_concurrency); try again")
+                log.warning(
+                    "refusing connections (from %s first): %d are open (server.limit_concurrency)",
+                    self.client,
+                    len(self.connections) - 1,
+                )
+            self._answer(
+                503,
+                "Service Unavailable",
+                "busy",
+                f"the service has {limit} connections open (server.limit_concurrency); try again",
+            )
             return
         self._arm("header", self.limits.timeout_header_s)
 
@@ -114,9 +125,12 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
 
     def send_400_response(self, msg: str) -> None:
         if self._header_too_large:
-            self._answer(431, "Request Header Fields Too Large", "header_too_large",
-                         f"the request line and headers exceed {self.limits.max_header_bytes} bytes "
-                         "(server.max_header_bytes)")
+            self._answer(
+                431,
+                "Request Header Fields Too Large",
+                "header_too_large",
+                f"the request line and headers exceed {self.limits.max_header_bytes} bytes (server.max_header_bytes)",
+            )
             return
         super().send_400_response(msg)
 
@@ -125,8 +139,12 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
         payload = json.dumps(error_body(reason, message)).encode()
         head = [f"HTTP/1.1 {status} {phrase}".encode()]
         head += [name + b": " + value for name, value in self.server_state.default_headers]
-        head += [b"content-type: application/json", b"content-length: " + str(len(payload)).encode(),
-                 b"connection: close", b"x-content-type-options: nosniff"]
+        head += [
+            b"content-type: application/json",
+            b"content-length: " + str(len(payload)).encode(),
+            b"connection: close",
+            b"x-content-type-options: nosniff",
+        ]
         self.transport.write(b"\r\n".join(head) + b"\r\n\r\n" + payload)
         self.transport.close()
 

@@ -27,8 +27,12 @@ def prometheus_text(worker: Any, hub: Hub) -> str:
         out.extend(r for r in rows if r)
 
     cams = h["cameras"]
-    family("posecell_camera_up", "gauge", "1 when the camera delivers frames",
-           [_line("posecell_camera_up", c["state"] == "ok", camera=n) for n, c in cams.items()])
+    family(
+        "posecell_camera_up",
+        "gauge",
+        "1 when the camera delivers frames",
+        [_line("posecell_camera_up", c["state"] == "ok", camera=n) for n, c in cams.items()],
+    )
     for key, kind, text in (
         ("frames", "counter", "frames received"),
         ("dropped", "counter", "frames replaced before processing (consumer too slow)"),
@@ -39,20 +43,36 @@ def prometheus_text(worker: Any, hub: Hub) -> str:
     ):
         name = f"posecell_camera_{key}" + ("_total" if kind == "counter" else "")
         family(name, kind, text, [_line(name, c.get(key), camera=n) for n, c in cams.items()])
-    family("posecell_robot_up", "gauge", "1 when the robot link is up",
-           [_line("posecell_robot_up", h["robot"]["state"] == "ok")])
+    family(
+        "posecell_robot_up",
+        "gauge",
+        "1 when the robot link is up",
+        [_line("posecell_robot_up", h["robot"]["state"] == "ok")],
+    )
     p = h["processing"]
     for key in ("results", "ok", "failed", "roi", "full", "stored", "triggered"):
         name = f"posecell_results_{key}_total"
         family(name, "counter", f"measurement results ({key})", [_line(name, p[key])])
-    family("posecell_latency_ms", "gauge", "median exposure-to-result latency over the last 200 frames",
-           [_line("posecell_latency_ms", p["latency_ms_median"])])
-    family("posecell_processing_ms", "gauge", "median processing time per frame over the last 200 frames",
-           [_line("posecell_processing_ms", p["processing_ms_median"])])
+    family(
+        "posecell_latency_ms",
+        "gauge",
+        "median exposure-to-result latency over the last 200 frames",
+        [_line("posecell_latency_ms", p["latency_ms_median"])],
+    )
+    family(
+        "posecell_processing_ms",
+        "gauge",
+        "median processing time per frame over the last 200 frames",
+        [_line("posecell_processing_ms", p["processing_ms_median"])],
+    )
     ws = hub.stats()
     family("posecell_ws_clients", "gauge", "connected WebSocket clients", [_line("posecell_ws_clients", ws["clients"])])
-    family("posecell_ws_dropped_total", "counter", "WebSocket messages dropped for slow clients",
-           [_line("posecell_ws_dropped_total", ws["dropped_total"])])
+    family(
+        "posecell_ws_dropped_total",
+        "counter",
+        "WebSocket messages dropped for slow clients",
+        [_line("posecell_ws_dropped_total", ws["dropped_total"])],
+    )
     st = h.get("storage") or {}
     for key in ("queued", "written", "dropped"):
         if key in st:

@@ -57,8 +57,10 @@ SECURITY_HEADERS: list[tuple[bytes, bytes]] = [
     (b"x-frame-options", b"DENY"),
     (b"referrer-policy", b"no-referrer"),
 ]
-_CSP = ("default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' blob: data:; "
-        "connect-src 'self'{ws}; object-src 'none'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'")
+_CSP = (
+    "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' blob: data:; "
+    "connect-src 'self'{ws}; object-src 'none'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'"
+)
 # a Host header as RFC 9110 allows it: reg-name or IPv4, or [IPv6], then an optional port
 _HOST_RE = re.compile(r"(?P<name>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._~!$&'()*+,;=%-]+)(?::(?P<port>[0-9]{1,5}))?")
 
@@ -158,24 +160,35 @@ class EdgeGuard:
             await _refuse(scope, send, 400, "host_not_allowed", "the request has more than one Host header")
             return
         if not self.rules.host_allowed(host):
-            await _refuse(scope, send, 400, "host_not_allowed",
-                          f"this service does not answer to the host name {host!r}; "
-                          "add it to server.allowed_hosts if it is the cell PC's")
+            await _refuse(
+                scope,
+                send,
+                400,
+                "host_not_allowed",
+                f"this service does not answer to the host name {host!r}; "
+                "add it to server.allowed_hosts if it is the cell PC's",
+            )
             return
         if scope["type"] == "websocket":
             origin = headers.get("origin")
             if not self.rules.origin_allowed(origin, host, scope):
-                await _refuse(scope, send, 403, "origin_not_allowed",
-                              f"a page from {origin!r} may not open this stream; "
-                              "list its origin in server.cors_origins if it should")
+                await _refuse(
+                    scope,
+                    send,
+                    403,
+                    "origin_not_allowed",
+                    f"a page from {origin!r} may not open this stream; "
+                    "list its origin in server.cors_origins if it should",
+                )
                 return
             await self.app(scope, receive, send)
             return
 
         has_body = headers.get("content-length", "0") not in ("", "0") or "transfer-encoding" in headers
         if scope["method"] not in SAFE_METHODS and not token_matches(headers.get("authorization"), self.token()):
-            await _refuse(scope, send, 401, "unauthorized", UNAUTHORIZED, close=has_body,
-                          extra=[(b"www-authenticate", b"Bearer")])
+            await _refuse(
+                scope, send, 401, "unauthorized", UNAUTHORIZED, close=has_body, extra=[(b"www-authenticate", b"Bearer")]
+            )
             return
         limit = self.rules.max_body_bytes
         declared = headers.get("content-length", "")
@@ -242,12 +255,18 @@ def _with_security_headers(raw: Any, host: str | None) -> list[tuple[bytes, byte
     return headers
 
 
-async def _refuse(scope: Scope, send: Send, status: int, reason: str, message: str, close: bool = False,
-                  extra: list[tuple[bytes, bytes]] | None = None) -> None:
+async def _refuse(
+    scope: Scope,
+    send: Send,
+    status: int,
+    reason: str,
+    message: str,
+    close: bool = False,
+    extra: list[tuple[bytes, bytes]] | None = None,
+) -> None:
     """The one error body, sent before the route runs (for a WebSocket: instead of the handshake)."""
     payload = json.dumps(error_body(reason, message)).encode()
-    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(payload)).encode()),
-               *(extra or [])]
+    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(payload)).encode()), *(extra or [])]
     if close:
         headers.append((b"connection", b"close"))
     host = Headers(scope=scope).get("host")
@@ -258,6 +277,11 @@ async def _refuse(scope: Scope, send: Send, status: int, reason: str, message: s
         await send({"type": "websocket.http.response.start", "status": status, "headers": headers})
         await send({"type": "websocket.http.response.body", "body": payload})
         return
-    await send({"type": "http.response.start", "status": status,
-                "headers": _with_security_headers(headers, host if reason != "host_not_allowed" else None)})
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": _with_security_headers(headers, host if reason != "host_not_allowed" else None),
+        }
+    )
     await send({"type": "http.response.body", "body": payload})

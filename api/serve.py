@@ -32,10 +32,14 @@ def uvicorn_config(app: Any, settings: Settings, **overrides: Any) -> uvicorn.Co
         log.warning("httptools is not installed: no header or body timeouts, only keep-alive")
         http: Any = "h11"
     else:
-        http = guarded_protocol(ConnectionLimits(
-            timeout_header_s=s.timeout_header_s, timeout_body_s=s.timeout_body_s,
-            max_header_bytes=s.max_header_bytes, limit_concurrency=s.limit_concurrency,
-        ))
+        http = guarded_protocol(
+            ConnectionLimits(
+                timeout_header_s=s.timeout_header_s,
+                timeout_body_s=s.timeout_body_s,
+                max_header_bytes=s.max_header_bytes,
+                limit_concurrency=s.limit_concurrency,
+            )
+        )
     options: dict[str, Any] = {
         "host": s.host,
         "port": s.port,
@@ -73,8 +77,9 @@ def raise_open_file_limit() -> tuple[int, int]:
 
 def run_serve(config: Path | None, host: str | None, port: int | None, state_dir: Path | None) -> int:
     try:
-        settings = load_settings(config, server__host=host, server__port=port,
-                                 state_dir=str(state_dir) if state_dir else None)
+        settings = load_settings(
+            config, server__host=host, server__port=port, state_dir=str(state_dir) if state_dir else None
+        )
     except SettingsError as e:
         print(f"posecell serve: {e}", file=sys.stderr)
         return 2
@@ -86,11 +91,17 @@ def run_serve(config: Path | None, host: str | None, port: int | None, state_dir
     s = settings.server
     open_files, _ = raise_open_file_limit()
     if open_files < s.limit_concurrency + 256:
-        log.warning("only %d open files allowed: fewer than server.limit_concurrency (%d) + 256; raise LimitNOFILE",
-                    open_files, s.limit_concurrency)
+        log.warning(
+            "only %d open files allowed: fewer than server.limit_concurrency (%d) + 256; raise LimitNOFILE",
+            open_files,
+            s.limit_concurrency,
+        )
     where = "the simulated cell" if settings.uses_sim else "the configured devices"
-    print(f"posecell serve: {where} on http://{s.host}:{s.port} "
-          f"(API docs at /docs, state in {settings.resolved_state_dir()})", file=sys.stderr)
+    print(
+        f"posecell serve: {where} on http://{s.host}:{s.port} "
+        f"(API docs at /docs, state in {settings.resolved_state_dir()})",
+        file=sys.stderr,
+    )
     server = uvicorn.Server(uvicorn_config(create_app(settings), settings))
     try:
         server.run()

@@ -100,7 +100,8 @@ class Hub:
             self.stalled_disconnects += 1
             raise StalledClient(
                 f"WebSocket client {_peer(websocket)} read nothing for {self.stall_timeout_s:.1f} s "
-                f"({client.dropped} messages dropped): disconnected") from None
+                f"({client.dropped} messages dropped): disconnected"
+            ) from None
         client.sent += 1
 
     def stats(self) -> dict[str, Any]:

@@ -33,10 +33,14 @@ def encode_frame(
             colour = _RED if t.get("rejected") else _GREEN
             centre = (round(u), round(v))
             cv2.circle(bgr, centre, max(4, int(8 * scale)), colour, 1, cv2.LINE_AA)
-            cv2.putText(bgr, t["id"], (centre[0] + 6, centre[1] - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.35, colour, 1,
-                        cv2.LINE_AA)
-        text = (f"{result.get('camera', '')} {result.get('mode', '')} rms {result.get('rms_px', 0):.3f} px"
-                if result.get("ok") else f"{result.get('reason')}: {result.get('message', '')}")
+            cv2.putText(
+                bgr, t["id"], (centre[0] + 6, centre[1] - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.35, colour, 1, cv2.LINE_AA
+            )
+        text = (
+            f"{result.get('camera', '')} {result.get('mode', '')} rms {result.get('rms_px', 0):.3f} px"
+            if result.get("ok")
+            else f"{result.get('reason')}: {result.get('message', '')}"
+        )
         cv2.putText(bgr, text, (10, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, _YELLOW, 1, cv2.LINE_AA)
     ext, media = (".png", "image/png") if fmt == "png" else (".jpg", "image/jpeg")
     ok, buf = cv2.imencode(ext, bgr)

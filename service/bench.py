@@ -37,8 +37,7 @@ def run_bench(args: argparse.Namespace) -> int:
     names = args.sections or list(SECTIONS)
     unknown = [n for n in names if n not in SECTIONS]
     if unknown:
-        print(f"posecell bench: unknown section(s) {', '.join(unknown)}; "
-              f"known: {', '.join(SECTIONS)}", file=sys.stderr)
+        print(f"posecell bench: unknown section(s) {', '.join(unknown)}; known: {', '.join(SECTIONS)}", file=sys.stderr)
         return 2
     for name in names:
         t0 = time.perf_counter()

@@ -48,9 +48,7 @@ def _visible(camera: BrownFraser, field: Field, T_field_camera: Array) -> tuple[
     return field.xyz[keep], uv[keep]
 
 
-def resection_sigmas(
-    sigma_px: float, view_angle_deg: float, trials: int, rng: np.random.Generator
-) -> Sigmas:
+def resection_sigmas(sigma_px: float, view_angle_deg: float, trials: int, rng: np.random.Generator) -> Sigmas:
     camera, field = reference_camera(), reference_field()
     T_true = reference_pose(view_angle_deg=view_angle_deg, distance_mm=DISTANCE_MM)
     p, uv = _visible(camera, field, T_true)
@@ -74,9 +72,7 @@ def _second_camera_pose(T_field_master: Array) -> Array:
     return T
 
 
-def intersection_sigmas(
-    sigma_px: float, view_angle_deg: float, trials: int, rng: np.random.Generator
-) -> Sigmas:
+def intersection_sigmas(sigma_px: float, view_angle_deg: float, trials: int, rng: np.random.Generator) -> Sigmas:
     camera, field = reference_camera(), reference_field()
     T_master = reference_pose(view_angle_deg=view_angle_deg, distance_mm=DISTANCE_MM)
     T_second = _second_camera_pose(T_master)
@@ -111,8 +107,7 @@ def table3(trials: int, rng: np.random.Generator) -> str:
     n = results[10].n_points
     return "\n".join(
         [
-            f"Table 3 — σ of resection, view angle 90°, {DISTANCE_MM:.0f} mm, {n} targets in view, "
-            f"{trials} trials",
+            f"Table 3 — σ of resection, view angle 90°, {DISTANCE_MM:.0f} mm, {n} targets in view, {trials} trials",
             "",
             "| | paper 1/5 px | predicted | Monte Carlo | paper 1/10 px | predicted | Monte Carlo |",
             "|---|---|---|---|---|---|---|",

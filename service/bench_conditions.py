@@ -58,8 +58,16 @@ def add_labels(image: NDArray[np.generic], rng: np.random.Generator, n: int = 40
     for _ in range(n):
         u, v = int(rng.uniform(0, w - 80)), int(rng.uniform(20, h))
         level = float(rng.uniform(0.2, 0.6)) * full
-        cv2.putText(out, f"{rng.integers(1, 999)}", (u, v), cv2.FONT_HERSHEY_SIMPLEX, float(rng.uniform(0.4, 0.9)),
-                    level, int(rng.integers(1, 3)), cv2.LINE_AA)
+        cv2.putText(
+            out,
+            f"{rng.integers(1, 999)}",
+            (u, v),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            float(rng.uniform(0.4, 0.9)),
+            level,
+            int(rng.integers(1, 3)),
+            cv2.LINE_AA,
+        )
     return out
 
 
@@ -86,8 +94,9 @@ def _peer(frames: list[RenderedFrame], images: list[NDArray[np.generic]]) -> tup
         if len(ids) < 6:
             ms.append(((t_detect - t0) + (time.perf_counter() - t_ident)) * 1e3)
             continue
-        ok, rvec, tvec = cv2.solvePnP(field.xyz[field.indices_of(ids)], uv_m, fit.K, fit.dist,
-                                      flags=cv2.SOLVEPNP_ITERATIVE)
+        ok, rvec, tvec = cv2.solvePnP(
+            field.xyz[field.indices_of(ids)], uv_m, fit.K, fit.dist, flags=cv2.SOLVEPNP_ITERATIVE
+        )
         ms.append(((t_detect - t0) + (time.perf_counter() - t_ident)) * 1e3)
         if ok:
             T_camera_field = np.eye(4)
@@ -102,9 +111,11 @@ def run(n_frames: int = 30, seed: int = 1) -> str:
 
     cv2.setNumThreads(1)
     camera, field = reference_camera(), reference_field()
-    rows = ["| condition | full ms median | full ms p99 | ROI ms median | pose error mm | fail | "
-            "peer ms median | peer ms p99 | peer pose error mm | × peer speed (full) |",
-            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    rows = [
+        "| condition | full ms median | full ms p99 | ROI ms median | pose error mm | fail | "
+        "peer ms median | peer ms p99 | peer pose error mm | × peer speed (full) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for k, cond in enumerate(CONDITIONS):
         frames = frames_along_path(n_frames, seed + k, cond.render, cond.view_deg)
         label_rng = np.random.default_rng(seed + 1000 + k)
@@ -128,10 +139,15 @@ def run(n_frames: int = 30, seed: int = 1) -> str:
             if out.mode == "roi" and isinstance(out.result, PoseResult):
                 roi_ms.append((time.perf_counter() - t0) * 1e3)
         peer_ms, peer_err = _peer(frames, images)
-        rows.append(f"| {cond.name} | {_med(full_ms):.2f} | {_p99(full_ms):.2f} | {_med(roi_ms):.2f} | "
-                    f"{_med(err):.4f} | {fails} | {_med(peer_ms):.2f} | {_p99(peer_ms):.2f} | "
-                    f"{_med(peer_err):.4f} | {_med(peer_ms) / _med(full_ms):.2f} |")
-    rows += ["", f"{n_frames} frames per condition along a seeded path (views ±10° about the row's angle, "
-             "900–1100 mm), one core; the peer is given the identities. Goals: full frame median ≤ 5 ms and "
-             "p99 ≤ 10 ms, ROI ≤ 1 ms, ≥ 3× the peer's speed at equal or better pose error, in every row."]
+        rows.append(
+            f"| {cond.name} | {_med(full_ms):.2f} | {_p99(full_ms):.2f} | {_med(roi_ms):.2f} | "
+            f"{_med(err):.4f} | {fails} | {_med(peer_ms):.2f} | {_p99(peer_ms):.2f} | "
+            f"{_med(peer_err):.4f} | {_med(peer_ms) / _med(full_ms):.2f} |"
+        )
+    rows += [
+        "",
+        f"{n_frames} frames per condition along a seeded path (views ±10° about the row's angle, "
+        "900–1100 mm), one core; the peer is given the identities. Goals: full frame median ≤ 5 ms and "
+        "p99 ≤ 10 ms, ROI ≤ 1 ms, ≥ 3× the peer's speed at equal or better pose error, in every row.",
+    ]
     return "\n".join(rows)

@@ -39,8 +39,11 @@ def _service(state_dir: str) -> Iterator[tuple[str, str]]:
         port = int(s.getsockname()[1])
     token = "bench"
     env = {**os.environ, "POSECELL_SERVER__TOKEN": token, "POSECELL_LOG_LEVEL": "warning"}
-    child = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port),
-                              "--state-dir", state_dir], env=env, stdout=subprocess.DEVNULL)
+    child = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--state-dir", state_dir],
+        env=env,
+        stdout=subprocess.DEVNULL,
+    )
     try:
         yield f"http://127.0.0.1:{port}", token
     finally:
@@ -81,8 +84,12 @@ def run(rounds: int = 5) -> str:
         def fresh_pose(need_deviation: bool = False) -> bool:
             r = c.get("/poses/latest")
             m = r.json()
-            return r.status_code == 200 and m.get("ok") and not m.get("stale") and (
-                not need_deviation or m.get("deviation") is not None)
+            return (
+                r.status_code == 200
+                and m.get("ok")
+                and not m.get("stale")
+                and (not need_deviation or m.get("deviation") is not None)
+            )
 
         def fault(device: str, action: str) -> None:
             c.post("/sim/faults", json={"device": device, "action": action}).raise_for_status()
@@ -99,20 +106,31 @@ def run(rounds: int = 5) -> str:
                 t0 = time.monotonic()
                 fault(device, action)
                 if action == "stall":
-                    add("camera stall: newest pose no longer served as current",
-                        _until(lambda: not fresh_pose(), 10.0, t0))
+                    add(
+                        "camera stall: newest pose no longer served as current",
+                        _until(lambda: not fresh_pose(), 10.0, t0),
+                    )
                 add(f"{device} {action}: reported in /health", _until(lambda s=seen: s(health()), 10.0, t0))
                 time.sleep(2.0)  # an outage of some seconds (reconnection back-off at its longest)
                 t0 = time.monotonic()
                 fault(device, "plug")
-                add(f"{device} {action}: back to ok with a fresh pose", _until(
-                    lambda d=device: health()["status"] == "ok" and fresh_pose(d == "robot"), 15.0, t0))
+                add(
+                    f"{device} {action}: back to ok with a fresh pose",
+                    _until(lambda d=device: health()["status"] == "ok" and fresh_pose(d == "robot"), 15.0, t0),
+                )
             time.sleep(1.0)
             locker = subprocess.Popen(
-                [sys.executable, "-c", "import sqlite3, sys\n"
-                 f"c = sqlite3.connect({str(db)!r}, isolation_level=None)\nc.execute('BEGIN IMMEDIATE')\n"
-                 "print('locked', flush=True)\nsys.stdin.readline()\n"],
-                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                [
+                    sys.executable,
+                    "-c",
+                    "import sqlite3, sys\n"
+                    f"c = sqlite3.connect({str(db)!r}, isolation_level=None)\nc.execute('BEGIN IMMEDIATE')\n"
+                    "print('locked', flush=True)\nsys.stdin.readline()\n",
+                ],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                text=True,
+            )
             assert locker.stdout is not None and locker.stdin is not None
             locker.stdout.readline()
             t0 = time.monotonic()
@@ -125,8 +143,7 @@ def run(rounds: int = 5) -> str:
 
             waiter = threading.Thread(target=measure)
             waiter.start()
-            add("database locked: reported in /health",
-                _until(lambda: health()["storage"]["state"] != "ok", 10.0, t0))
+            add("database locked: reported in /health", _until(lambda: health()["storage"]["state"] != "ok", 10.0, t0))
             waiter.join()
             r = answer["r"]
             if r.status_code != 503 or r.json().get("reason") != "storage_unavailable":
@@ -144,6 +161,8 @@ def run(rounds: int = 5) -> str:
     lines = ["| fault → what a client sees | median ms | worst ms |", "|---|---:|---:|"]
     for name, values in rows.items():
         lines.append(f"| {name} | {statistics.median(values):.0f} | {max(values):.0f} |")
-    lines.append(f"\n{rounds} rounds; the simulated cell at 20 Hz, `posecell serve` in a child process, "
-                 f"a client polling every {POLL_S * 1e3:.0f} ms (`posecell bench faults --rounds {rounds}`).")
+    lines.append(
+        f"\n{rounds} rounds; the simulated cell at 20 Hz, `posecell serve` in a child process, "
+        f"a client polling every {POLL_S * 1e3:.0f} ms (`posecell bench faults --rounds {rounds}`)."
+    )
     return "\n".join(lines)

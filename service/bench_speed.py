@@ -31,8 +31,9 @@ from service.sim.scene import reference_camera, reference_field, reference_pose
 Array = NDArray[np.float64]
 
 
-def frames_along_path(n: int, seed: int, settings: RenderSettings | None = None,
-                      view_deg: float = 80.0) -> list[RenderedFrame]:
+def frames_along_path(
+    n: int, seed: int, settings: RenderSettings | None = None, view_deg: float = 80.0
+) -> list[RenderedFrame]:
     """``n`` rendered frames, 4 ms apart along a smooth path (a robot at ~100 mm/s).
 
     Views ``view_deg`` +- 10 deg (90: head-on); the renderer's defaults at 80 % exposure unless ``settings``.
@@ -103,8 +104,12 @@ def run(n_frames: int, seed: int, conditions_frames: int = 30) -> str:
             truth = dict(zip(frame.ids, frame.uv_true, strict=True))
             ours_c += [np.array(t.uv) - truth[t.id] for t in out.result.targets]
 
-    def track(settings: MeasureSettings, ms_out: list[float], err_out: list[tuple[float, float]],
-              stages: dict[str, list[float]] | None = None) -> list[str]:
+    def track(
+        settings: MeasureSettings,
+        ms_out: list[float],
+        err_out: list[tuple[float, float]],
+        stages: dict[str, list[float]] | None = None,
+    ) -> list[str]:
         tracker = FrameMeasurer(camera, field, settings)
         modes = []
         for k, frame in enumerate(frames):

@@ -124,8 +124,9 @@ def parse_scale_bar(text: str) -> ScaleBar:
         raise ValueError(f"scale bar {text!r} is not 'ID_A,ID_B,DISTANCE_MM[,SIGMA_MM]'") from None
 
 
-def start_camera(camera_path: str | None, c_mm: float | None, pixel_size_mm: float | None,
-                 size: tuple[int, int] | None) -> BrownFraser:
+def start_camera(
+    camera_path: str | None, c_mm: float | None, pixel_size_mm: float | None, size: tuple[int, int] | None
+) -> BrownFraser:
     """The start interior orientation: a camera.json, or a nominal one from c, pixel size and image size."""
     if camera_path:
         return formats.read_camera(camera_path)
@@ -151,16 +152,31 @@ def image_paths(items: Sequence[str]) -> list[Path]:
 # -- measuring ---------------------------------------------------------------------------
 
 
-def measure_images(camera: BrownFraser, field: Field, paths: Sequence[Path], options: MeasureOptions,
-                   progress: ProgressBar | None, *, first_pass: bool = True,
-                   label: str = "measuring") -> tuple[list[ImagePoints], list[str]]:
+def measure_images(
+    camera: BrownFraser,
+    field: Field,
+    paths: Sequence[Path],
+    options: MeasureOptions,
+    progress: ProgressBar | None,
+    *,
+    first_pass: bool = True,
+    label: str = "measuring",
+) -> tuple[list[ImagePoints], list[str]]:
     """Identified targets (all of them, also those the image's own resection rejected: the bundle
     judges them again) and start pose of every image; and one sentence per image that failed."""
     from service.pipeline import FrameMeasurer, MeasureSettings
 
-    detect = DetectSettings(**{k: v for k, v in (("min_contrast_dn", options.min_contrast_dn),
-                                                 ("min_area_px", options.min_area_px),
-                                                 ("max_area_px", options.max_area_px)) if v is not None})
+    detect = DetectSettings(
+        **{
+            k: v
+            for k, v in (
+                ("min_contrast_dn", options.min_contrast_dn),
+                ("min_area_px", options.min_area_px),
+                ("max_area_px", options.max_area_px),
+            )
+            if v is not None
+        }
+    )
     settings = MeasureSettings(detect=detect, code_family=FAMILIES[options.code_family], roi=False)
     if first_pass:
         settings = replace(settings, sigma_px=options.start_sigma_px, max_sigma0_px=options.start_max_sigma0_px)
@@ -171,12 +187,19 @@ def measure_images(camera: BrownFraser, field: Field, paths: Sequence[Path], opt
             progress.bar(label, k, len(paths), path.name)
         image = formats.read_image(path)
         if image.shape[1] != camera.width or image.shape[0] != camera.height:
-            raise formats.FormatError(f"{path}: {image.shape[1]}x{image.shape[0]} px, but the camera is "
-                                      f"{camera.width}x{camera.height} px")
+            raise formats.FormatError(
+                f"{path}: {image.shape[1]}x{image.shape[0]} px, but the camera is {camera.width}x{camera.height} px"
+            )
         result = measurer.measure(image).result
         if isinstance(result, PoseResult):
-            images.append(ImagePoints(path.name, tuple(t.id for t in result.targets),
-                                      np.array([t.uv for t in result.targets]), np.asarray(result.T_field_camera)))
+            images.append(
+                ImagePoints(
+                    path.name,
+                    tuple(t.id for t in result.targets),
+                    np.array([t.uv for t in result.targets]),
+                    np.asarray(result.T_field_camera),
+                )
+            )
         else:
             failures.append(f"{path.name}: {result.message}")
     if progress is not None:
@@ -210,11 +233,17 @@ def refined_field_json(result: BundleResult, nominal: Field, name: str) -> dict[
 
 def summary(result: BundleResult, output: str) -> dict[str, Any]:
     cam = result.camera
-    return {"ok": True, "output": str(output), "sigma0_px": round(result.sigma0_px, 5),
-            "n_images": len(result.images), "n_targets": len(result.field),
-            "n_observations": result.n_observations, "n_rejected": result.n_rejected,
-            "camera": {n: {"value": float(getattr(cam, n)), "sigma": result.sigma[n]} for n in result.free},
-            "warnings": list(result.warnings)}
+    return {
+        "ok": True,
+        "output": str(output),
+        "sigma0_px": round(result.sigma0_px, 5),
+        "n_images": len(result.images),
+        "n_targets": len(result.field),
+        "n_observations": result.n_observations,
+        "n_rejected": result.n_rejected,
+        "camera": {n: {"value": float(getattr(cam, n)), "sigma": result.sigma[n]} for n in result.free},
+        "warnings": list(result.warnings),
+    }
 
 
 # -- command-line arguments -------------------------------------------------------------------
@@ -222,11 +251,20 @@ def summary(result: BundleResult, output: str) -> dict[str, Any]:
 
 def _common_options(args: Any) -> dict[str, Any]:
     bars = [parse_scale_bar(b) for b in args.scale_bar or []]
-    measure = MeasureOptions(code_family=args.code_family, min_contrast_dn=args.min_contrast_dn,
-                             min_area_px=args.min_area_px, max_area_px=args.max_area_px)
-    return {"scale_bars": bars, "sigma_px": args.sigma_px, "reject_outliers": not args.no_reject,
-            "measure": measure, "progress": None if args.quiet else ProgressBar(sys.stderr),
-            "output": args.output}
+    measure = MeasureOptions(
+        code_family=args.code_family,
+        min_contrast_dn=args.min_contrast_dn,
+        min_area_px=args.min_area_px,
+        max_area_px=args.max_area_px,
+    )
+    return {
+        "scale_bars": bars,
+        "sigma_px": args.sigma_px,
+        "reject_outliers": not args.no_reject,
+        "measure": measure,
+        "progress": None if args.quiet else ProgressBar(sys.stderr),
+        "output": args.output,
+    }
 
 
 def camera_options(args: Any) -> dict[str, Any]:
@@ -239,21 +277,39 @@ def camera_options(args: Any) -> dict[str, Any]:
             size = ()
         if len(size) != 2:
             raise ValueError(f"--image-size {args.image_size!r} is not WIDTHxHEIGHT")
-    return {"images": args.images, "observations": args.observations, "camera_path": args.camera,
-            "c_mm": args.c_mm, "pixel_size_mm": args.pixel_size_mm, "image_size": size,
-            "fix": parse_names(args.fix), "control": [c for c in (args.control or "").split(",") if c],
-            "control_sigma_mm": args.control_sigma_mm, "residual_space": args.residuals, "passes": args.passes,
-            "field_out": args.field_out, "observations_out": args.observations_out, **_common_options(args)}
+    return {
+        "images": args.images,
+        "observations": args.observations,
+        "camera_path": args.camera,
+        "c_mm": args.c_mm,
+        "pixel_size_mm": args.pixel_size_mm,
+        "image_size": size,
+        "fix": parse_names(args.fix),
+        "control": [c for c in (args.control or "").split(",") if c],
+        "control_sigma_mm": args.control_sigma_mm,
+        "residual_space": args.residuals,
+        "passes": args.passes,
+        "field_out": args.field_out,
+        "observations_out": args.observations_out,
+        **_common_options(args),
+    }
 
 
 def rig_options(args: Any) -> dict[str, Any]:
     """Keyword arguments of :func:`run_rig_calibration` from ``posecell calibrate rig``'s; ValueError if bad."""
     if args.time_tolerance_s is not None and not (math.isfinite(args.time_tolerance_s) and args.time_tolerance_s > 0):
         raise ValueError(f"--time-tolerance-s {args.time_tolerance_s:g} must be a positive number of seconds")
-    return {"image_dirs": args.images or (), "observations": args.observations, "pairs": args.pairs,
-            "pair_by": args.pair_by, "time_tolerance_s": args.time_tolerance_s, "drop_unpaired": args.drop_unpaired,
-            "free_interior": parse_names(args.free_interior), "survey_field": args.survey_field,
-            **_common_options(args)}
+    return {
+        "image_dirs": args.images or (),
+        "observations": args.observations,
+        "pairs": args.pairs,
+        "pair_by": args.pair_by,
+        "time_tolerance_s": args.time_tolerance_s,
+        "drop_unpaired": args.drop_unpaired,
+        "free_interior": parse_names(args.free_interior),
+        "survey_field": args.survey_field,
+        **_common_options(args),
+    }
 
 
 # -- workflows ------------------------------------------------------------------------------
@@ -312,28 +368,50 @@ def run_camera_calibration(
     for f in failures:
         if progress is not None:
             progress.note(f"skipped {f}")
-    result = calibrate_camera(camera, field, shots, free=free, datum=datum, sigma_px=sigma_px,
-                              residual_space=residual_space, reject_outliers=reject_outliers, progress=say)
+    result = calibrate_camera(
+        camera,
+        field,
+        shots,
+        free=free,
+        datum=datum,
+        sigma_px=sigma_px,
+        residual_space=residual_space,
+        reject_outliers=reject_outliers,
+        progress=say,
+    )
     for k in range(1, passes):
         # again with the calibrated camera: targets near the edges, lost to the start camera's
         # unmodelled distortion, are found now
         start = replace(result.camera, sigma=None)
-        shots2, failures = measure_images(start, field, paths, measure, progress, first_pass=False,
-                                          label=f"measuring again ({k + 1}/{passes})")
+        shots2, failures = measure_images(
+            start, field, paths, measure, progress, first_pass=False, label=f"measuring again ({k + 1}/{passes})"
+        )
         if len(shots2) >= len(result.images) and sum(len(s.ids) for s in shots2) >= result.n_observations:
-            result = calibrate_camera(start, field, shots2, free=free, datum=datum, sigma_px=sigma_px,
-                                      residual_space=residual_space, reject_outliers=reject_outliers, progress=say)
+            result = calibrate_camera(
+                start,
+                field,
+                shots2,
+                free=free,
+                datum=datum,
+                sigma_px=sigma_px,
+                residual_space=residual_space,
+                reject_outliers=reject_outliers,
+                progress=say,
+            )
             shots = shots2
     if progress is not None:
         progress.close()
     # results say "not determined" as null (a sigma of a target seen once), never as a NaN
     formats.write_json_atomic(output, formats.null_for_unknown(camera_json(result)))
     if field_out:
-        formats.write_json_atomic(field_out, formats.null_for_unknown(
-            refined_field_json(result, field, f"{field.name}-surveyed")))
+        formats.write_json_atomic(
+            field_out, formats.null_for_unknown(refined_field_json(result, field, f"{field.name}-surveyed"))
+        )
     if observations_out:
-        formats.write_json_atomic(observations_out, formats.image_observations_to_json(
-            [formats.ImageObservations(s.name, list(s.ids), s.uv) for s in shots]))
+        formats.write_json_atomic(
+            observations_out,
+            formats.image_observations_to_json([formats.ImageObservations(s.name, list(s.ids), s.uv) for s in shots]),
+        )
     return result
 
 
@@ -373,8 +451,13 @@ def _unique_keys(names: Sequence[str], keys: Sequence[Any], camera: int, what: s
     return out
 
 
-def pair_epochs(names: Sequence[Sequence[str]], by: str, *, times_ns: Sequence[Sequence[int]] | None = None,
-                tolerance_s: float = 0.005) -> tuple[list[list[int]], list[tuple[int, int]], str]:
+def pair_epochs(
+    names: Sequence[Sequence[str]],
+    by: str,
+    *,
+    times_ns: Sequence[Sequence[int]] | None = None,
+    tolerance_s: float = 0.005,
+) -> tuple[list[list[int]], list[tuple[int, int]], str]:
     """Which images of K cameras were exposed together, never by guesswork.
 
     ``by``: ``name`` (the same file name less its suffix), ``frame`` (the frame number in the names,
@@ -394,8 +477,10 @@ def pair_epochs(names: Sequence[Sequence[str]], by: str, *, times_ns: Sequence[S
             try:
                 return pair_epochs(names, "frame")
             except PairingError as e:
-                raise PairingError(f"the images pair neither by file name nor by frame number ({e}): list them "
-                                   f"in --pairs FILE or pair them by --pair-by time") from None
+                raise PairingError(
+                    f"the images pair neither by file name nor by frame number ({e}): list them "
+                    f"in --pairs FILE or pair them by --pair-by time"
+                ) from None
     if by == "time":
         if times_ns is None:
             raise ValueError("pairing by time needs the images' timestamps")
@@ -416,8 +501,9 @@ def pair_epochs(names: Sequence[Sequence[str]], by: str, *, times_ns: Sequence[S
     return epochs, unpaired, by
 
 
-def _pair_by_time(names: Sequence[Sequence[str]], times_ns: Sequence[Sequence[int]],
-                  tolerance_s: float) -> tuple[list[list[int]], list[tuple[int, int]]]:
+def _pair_by_time(
+    names: Sequence[Sequence[str]], times_ns: Sequence[Sequence[int]], tolerance_s: float
+) -> tuple[list[list[int]], list[tuple[int, int]]]:
     """:func:`pair_epochs` by exposure time: a pair must be unique within the tolerance both ways."""
     tol_ns = round(tolerance_s * 1e9)
     t0 = np.asarray(times_ns[0], dtype=np.int64)
@@ -430,9 +516,11 @@ def _pair_by_time(names: Sequence[Sequence[str]], times_ns: Sequence[Sequence[in
             if len(many):
                 i = int(many[0])
                 shown = ", ".join(names[b][j] for j in np.flatnonzero(cand[i])[:3])
-                raise PairingError(f"image {names[a][i]} of camera {a} has {int(cand[i].sum())} images of camera "
-                                   f"{b} within {tolerance_s:g} s ({shown}): lower --time-tolerance-s or list the "
-                                   f"pairs in --pairs FILE")
+                raise PairingError(
+                    f"image {names[a][i]} of camera {a} has {int(cand[i].sum())} images of camera "
+                    f"{b} within {tolerance_s:g} s ({shown}): lower --time-tolerance-s or list the "
+                    f"pairs in --pairs FILE"
+                )
         partner.append({int(i): int(j) for i, j in zip(*np.nonzero(near), strict=True)})
     epochs = [[i, *(p[i] for p in partner)] for i in range(len(t0)) if all(i in p for p in partner)]
     used = [{e[k] for e in epochs} for k in range(len(names))]
@@ -446,9 +534,15 @@ def _describe_unpaired(paths: Sequence[Path]) -> str:
     return f"{len(paths)} image{'s' if len(paths) > 1 else ''} without a partner ({', '.join(shown)}{more})"
 
 
-def _rig_shots(image_dirs: Sequence[str], *, pair_by: str = "auto", pairs_file: str | None = None,
-               n_cameras: int | None = None, time_tolerance_s: float = 0.005,
-               drop_unpaired: bool = False) -> tuple[list[tuple[str, list[Path]]], list[Path], str]:
+def _rig_shots(
+    image_dirs: Sequence[str],
+    *,
+    pair_by: str = "auto",
+    pairs_file: str | None = None,
+    n_cameras: int | None = None,
+    time_tolerance_s: float = 0.005,
+    drop_unpaired: bool = False,
+) -> tuple[list[tuple[str, list[Path]]], list[Path], str]:
     """Epoch name (camera 0's image) and one image per camera, the images left out, and the rule used.
 
     The images come from a folder per camera, paired by :func:`pair_epochs` (``time``: from each
@@ -481,15 +575,20 @@ def _rig_shots(image_dirs: Sequence[str], *, pair_by: str = "auto", pairs_file: 
             stamps = formats.read_image_timestamps(Path(d) / TIMESTAMPS_FILE)
             missing = [p.name for p in ps if p.name not in stamps]
             if missing:
-                raise PairingError(f"{Path(d) / TIMESTAMPS_FILE} has no timestamp for {missing[0]}"
-                                   + (f" and {len(missing) - 1} more images" if len(missing) > 1 else ""))
+                raise PairingError(
+                    f"{Path(d) / TIMESTAMPS_FILE} has no timestamp for {missing[0]}"
+                    + (f" and {len(missing) - 1} more images" if len(missing) > 1 else "")
+                )
             times.append([stamps[p.name] for p in ps])
-    epochs, unpaired, by = pair_epochs([[p.name for p in ps] for ps in per_cam], pair_by, times_ns=times,
-                                       tolerance_s=time_tolerance_s)
+    epochs, unpaired, by = pair_epochs(
+        [[p.name for p in ps] for ps in per_cam], pair_by, times_ns=times, tolerance_s=time_tolerance_s
+    )
     left_out = [per_cam[k][j] for k, j in unpaired]
     if left_out and not drop_unpaired:
-        raise PairingError(f"{_describe_unpaired(left_out)}: a frame is missing in a camera; leave such images out "
-                           f"with --drop-unpaired, or list the pairs in --pairs FILE")
+        raise PairingError(
+            f"{_describe_unpaired(left_out)}: a frame is missing in a camera; leave such images out "
+            f"with --drop-unpaired, or list the pairs in --pairs FILE"
+        )
     if not epochs:
         raise PairingError("no epoch has an image of every camera")
     return [(per_cam[0][e[0]].name, [per_cam[k][j] for k, j in enumerate(e)]) for e in epochs], left_out, by
@@ -534,15 +633,21 @@ def run_rig_calibration(
                 raise formats.FormatError(f"{observations}: image {o.name!r} needs 'camera' and 'epoch' for a rig")
             twin = next((s.name for s in shots if s.epoch == o.epoch and s.camera == o.camera), None)
             if twin is not None:
-                raise formats.FormatError(f"{observations}: epoch {o.epoch!r} has two images of camera {o.camera} "
-                                          f"({twin!r} and {o.name!r})")
+                raise formats.FormatError(
+                    f"{observations}: epoch {o.epoch!r} has two images of camera {o.camera} ({twin!r} and {o.name!r})"
+                )
             shots.append(RigImage(o.epoch, o.camera, tuple(o.ids), o.uv, o.name))
     else:
         if image_dirs and len(image_dirs) != len(cameras):
             raise ValueError(f"{len(image_dirs)} image folders but {len(cameras)} cameras (--camera, one per folder)")
         epochs, left_out, pairing = _rig_shots(
-            image_dirs, pair_by=pair_by, pairs_file=pairs, n_cameras=len(cameras),
-            time_tolerance_s=0.005 if time_tolerance_s is None else time_tolerance_s, drop_unpaired=drop_unpaired)
+            image_dirs,
+            pair_by=pair_by,
+            pairs_file=pairs,
+            n_cameras=len(cameras),
+            time_tolerance_s=0.005 if time_tolerance_s is None else time_tolerance_s,
+            drop_unpaired=drop_unpaired,
+        )
         for k in range(len(cameras)):
             names = [e[1][k].name for e in epochs]
             if len(set(names)) != len(names):  # measured images are matched back by file name
@@ -551,8 +656,7 @@ def run_rig_calibration(
             progress.note(f"left out {_describe_unpaired(left_out)}")
         meas = replace(measure, start_sigma_px=0.5, start_max_sigma0_px=2.0)  # calibrated cameras
         for k, cam in enumerate(cameras):
-            got, failures = measure_images(cam, field, [e[1][k] for e in epochs], meas, progress,
-                                           label=f"camera {k}")
+            got, failures = measure_images(cam, field, [e[1][k] for e in epochs], meas, progress, label=f"camera {k}")
             by_name = {g.name: g for g in got}
             for name, paths in epochs:
                 g = by_name.get(paths[k].name)
@@ -563,34 +667,66 @@ def run_rig_calibration(
                     progress.note(f"camera {k}: skipped {f}")
     if len(cameras) < 2:
         raise ValueError("a rig needs at least 2 cameras (--camera cam0.json cam1.json ...)")
-    result = calibrate_rig(cameras, field, shots, free_interior=free_interior, field_fixed=not survey_field,
-                           datum=Datum(scale_bars=tuple(scale_bars)), sigma_px=sigma_px,
-                           reject_outliers=reject_outliers,
-                           progress=progress.status if progress is not None else None)
+    result = calibrate_rig(
+        cameras,
+        field,
+        shots,
+        free_interior=free_interior,
+        field_fixed=not survey_field,
+        datum=Datum(scale_bars=tuple(scale_bars)),
+        sigma_px=sigma_px,
+        reject_outliers=reject_outliers,
+        progress=progress.status if progress is not None else None,
+    )
     notes = [f"left out {_describe_unpaired(left_out)}"] if left_out else []
-    result = replace(result, warnings=(*notes, *result.warnings),
-                     extra={**result.extra, "pairing": pairing, "images_left_out": [str(p) for p in left_out]})
+    result = replace(
+        result,
+        warnings=(*notes, *result.warnings),
+        extra={**result.extra, "pairing": pairing, "images_left_out": [str(p) for p in left_out]},
+    )
     if progress is not None:
         progress.close()
     formats.write_json_atomic(output, formats.null_for_unknown(result.to_dict()))
     return result
 
 
-
 def rig_summary(result: RigCalibration, output: str) -> dict[str, Any]:
-    return {"ok": True, "output": str(output), "sigma0_px": round(result.sigma0_px, 5),
-            "n_epochs": len(result.epochs), "n_cameras": result.rig.n_cameras,
-            "T_master_camera": [[[round(float(v), 9) for v in row] for row in T] for T in result.rig.T_master_camera],
-            "sigma_position_mm": result.sigma_position_mm.round(6).tolist(),
-            "sigma_rotation_deg": result.sigma_rotation_deg.round(8).tolist(),
-            "sigma_source": result.sigma_source,
-            "sigma_position_formal_mm": result.sigma_position_formal_mm.round(6).tolist(),
-            "sigma_position_jackknife_mm": [[None if not math.isfinite(v) else round(float(v), 6) for v in row]
-                                            for row in result.sigma_position_jackknife_mm],
-            "pairing": result.extra.get("pairing"),
-            "warnings": list(result.warnings)}
+    return {
+        "ok": True,
+        "output": str(output),
+        "sigma0_px": round(result.sigma0_px, 5),
+        "n_epochs": len(result.epochs),
+        "n_cameras": result.rig.n_cameras,
+        "T_master_camera": [[[round(float(v), 9) for v in row] for row in T] for T in result.rig.T_master_camera],
+        "sigma_position_mm": result.sigma_position_mm.round(6).tolist(),
+        "sigma_rotation_deg": result.sigma_rotation_deg.round(8).tolist(),
+        "sigma_source": result.sigma_source,
+        "sigma_position_formal_mm": result.sigma_position_formal_mm.round(6).tolist(),
+        "sigma_position_jackknife_mm": [
+            [None if not math.isfinite(v) else round(float(v), 6) for v in row]
+            for row in result.sigma_position_jackknife_mm
+        ],
+        "pairing": result.extra.get("pairing"),
+        "warnings": list(result.warnings),
+    }
 
 
-__all__ = ["PAIR_BY", "MeasureOptions", "PairingError", "ProgressBar", "camera_json", "camera_options",
-           "measure_images", "pair_epochs", "parse_names", "parse_scale_bar", "refined_field_json", "rig_options",
-           "rig_summary", "run_camera_calibration", "run_rig_calibration", "start_camera", "summary"]
+__all__ = [
+    "PAIR_BY",
+    "MeasureOptions",
+    "PairingError",
+    "ProgressBar",
+    "camera_json",
+    "camera_options",
+    "measure_images",
+    "pair_epochs",
+    "parse_names",
+    "parse_scale_bar",
+    "refined_field_json",
+    "rig_options",
+    "rig_summary",
+    "run_camera_calibration",
+    "run_rig_calibration",
+    "start_camera",
+    "summary",
+]

@@ -57,8 +57,12 @@ def read_robot_samples(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.nd
 
 def _errors(p_true: np.ndarray, p_model: np.ndarray) -> dict[str, float]:
     e = np.linalg.norm(p_true - p_model, axis=1)
-    return {"mean_mm": round(float(e.mean()), 4), "max_mm": round(float(e.max()), 4),
-            "rms_mm": round(float(np.sqrt(np.mean(e**2))), 4), "n": len(e)}
+    return {
+        "mean_mm": round(float(e.mean()), 4),
+        "max_mm": round(float(e.max()), 4),
+        "rms_mm": round(float(np.sqrt(np.mean(e**2))), 4),
+        "n": len(e),
+    }
 
 
 def run_robot_calibration(robot: str, samples: Path, test: Path | None, tool_mm: list[float] | None) -> dict[str, Any]:
@@ -76,21 +80,30 @@ def run_robot_calibration(robot: str, samples: Path, test: Path | None, tool_mm:
     out: dict[str, Any] = {
         "ok": True,
         "robot": robot,
-        "model": {"a_mm": m.a_mm.tolist(), "alpha_rad": m.alpha_rad.tolist(), "d_mm": m.d_mm.tolist(),
-                  "theta_offset_rad": m.theta_offset_rad.tolist(), "T_base_j0": m.T_base_j0.tolist(),
-                  "T_j6_flange": m.T_j6_flange.tolist()},
+        "model": {
+            "a_mm": m.a_mm.tolist(),
+            "alpha_rad": m.alpha_rad.tolist(),
+            "d_mm": m.d_mm.tolist(),
+            "theta_offset_rad": m.theta_offset_rad.tolist(),
+            "T_base_j0": m.T_base_j0.tolist(),
+            "T_j6_flange": m.T_j6_flange.tolist(),
+        },
         "measured_point_on_flange_mm": res.p_flange_point_mm.tolist(),
         "corrections": {n: {"delta": d, "sigma": s} for n, (d, s) in res.as_dict().items()},
         "unidentifiable": list(res.unidentifiable),
-        "calibration": {"nominal_mm": _errors(meas, base_only.predict(q)),
-                        "corrected_mm": _errors(meas, res.predict(q))},
+        "calibration": {
+            "nominal_mm": _errors(meas, base_only.predict(q)),
+            "corrected_mm": _errors(meas, res.predict(q)),
+        },
     }
     if cmd is not None:
         out["calibration"]["commanded_mm"] = _errors(meas, cmd)
     if test is not None:
         qt, cmdt, meast = read_robot_samples(test)
-        out["test"] = {"nominal_mm": _errors(meast, base_only.predict(qt)),
-                       "corrected_mm": _errors(meast, res.predict(qt))}
+        out["test"] = {
+            "nominal_mm": _errors(meast, base_only.predict(qt)),
+            "corrected_mm": _errors(meast, res.predict(qt)),
+        }
         if cmdt is not None:
             out["test"]["commanded_mm"] = _errors(meast, cmdt)
     return out

@@ -131,8 +131,12 @@ class CalibrationState:
         if kind == "camera":
             return obj.to_dict()
         if kind == "rig":
-            return {"model": "rig", "master": 0, "cameras": [c.to_dict() for c in obj.cameras],
-                    "T_master_camera": obj.T_master_camera.tolist()}
+            return {
+                "model": "rig",
+                "master": 0,
+                "cameras": [c.to_dict() for c in obj.cameras],
+                "T_master_camera": obj.T_master_camera.tolist(),
+            }
         if kind == "field":
             return formats.field_to_json(obj)
         return {"T_flange_camera": obj.T_flange_camera.tolist(), "T_base_field": obj.T_base_field.tolist()}

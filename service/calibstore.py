@@ -149,17 +149,22 @@ class CalibrationStore:
             raise CalibrationError(f"the {k} calibration is not valid JSON: {e}") from None
         with self._locked():
             index = self._read_index(k)
-            on_disk = [int(m["version"]) for p in self._history.iterdir()
-                       if (m := _HISTORY_NAME.match(p.name)) and m["kind"] == k.value]
+            on_disk = [
+                int(m["version"])
+                for p in self._history.iterdir()
+                if (m := _HISTORY_NAME.match(p.name)) and m["kind"] == k.value
+            ]
             version = max([e["version"] for e in index] + on_disk, default=0) + 1
             _write_atomic(self._history_path(k, version), payload)
-            index.append({
-                "version": version,
-                "t_wall": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ"),
-                "note": note,
-                "sha256": hashlib.sha256(payload).hexdigest(),
-                "size_bytes": len(payload),
-            })
+            index.append(
+                {
+                    "version": version,
+                    "t_wall": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ"),
+                    "note": note,
+                    "sha256": hashlib.sha256(payload).hexdigest(),
+                    "size_bytes": len(payload),
+                }
+            )
             _write_atomic(self._index_path(k), (json.dumps(index, indent=2) + "\n").encode())
             _write_atomic(self._current_path(k), payload)
         log.info("calibration %s version %d stored%s", k.value, version, f" ({note})" if note else "")

@@ -69,8 +69,9 @@ class StandInProcess:
 
     def spawn(self) -> None:
         # its stdin is ours: when this process dies, however, the stand-in sees end-of-file and stops
-        self.proc = subprocess.Popen([*self.argv, "--parent-stdin"], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True)
+        self.proc = subprocess.Popen(
+            [*self.argv, "--parent-stdin"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        )
 
     def wait_ready(self, timeout_s: float = READY_TIMEOUT_S, cancel: threading.Event | None = None) -> None:
         """Block until the process says ``ready``; raises ``RuntimeError`` (and kills it) if it does not.
@@ -148,8 +149,10 @@ class CellRuntime:
         common = ["--epoch-ns", str(self.epoch_ns), "--cell", json.dumps(cell.config.to_dict())]
         module = [sys.executable, "-m", "drivers.standins.sim_cell"]
         self.standin_processes = {
-            "camera": StandInProcess("GigE Vision camera", [*module, "--serve", "camera", "--host", GV_ADDRESS,
-                                                            "--serial", "POSECELL-SIM", *common]),
+            "camera": StandInProcess(
+                "GigE Vision camera",
+                [*module, "--serve", "camera", "--host", GV_ADDRESS, "--serial", "POSECELL-SIM", *common],
+            ),
             "rtde": StandInProcess("RTDE", [*module, "--serve", "rtde", "--host", self.rtde_address, *common]),
         }
         self._stop.clear()
@@ -192,8 +195,11 @@ class CellRuntime:
                     if time.monotonic() < due[name]:
                         continue
                     if p.proc is not None:
-                        self.on_event("warning", "standin_died",
-                                      f"the {p.name} stand-in (pid {p.pid}) ended with exit code {code}; restarting")
+                        self.on_event(
+                            "warning",
+                            "standin_died",
+                            f"the {p.name} stand-in (pid {p.pid}) ended with exit code {code}; restarting",
+                        )
                         p.stop()
                     due[name] = time.monotonic() + backoff[name]
                     backoff[name] = min(RESTART_BACKOFF_S[1], backoff[name] * 2)

@@ -97,15 +97,19 @@ def _run_calibration(verb: str, run: Callable[[], Any], summary: Callable[[Any],
 def cmd_calibrate_camera(args: argparse.Namespace) -> int:
     from service.calibrate_camera import camera_options, run_camera_calibration, summary
 
-    return _run_calibration("camera", lambda: run_camera_calibration(args.field, **camera_options(args)),
-                            lambda r: summary(r, args.output))
+    return _run_calibration(
+        "camera", lambda: run_camera_calibration(args.field, **camera_options(args)), lambda r: summary(r, args.output)
+    )
 
 
 def cmd_calibrate_rig(args: argparse.Namespace) -> int:
     from service.calibrate_camera import rig_options, rig_summary, run_rig_calibration
 
-    return _run_calibration("rig", lambda: run_rig_calibration(args.field, args.camera, **rig_options(args)),
-                            lambda r: rig_summary(r, args.output))
+    return _run_calibration(
+        "rig",
+        lambda: run_rig_calibration(args.field, args.camera, **rig_options(args)),
+        lambda r: rig_summary(r, args.output),
+    )
 
 
 def cmd_calibrate_robot(args: argparse.Namespace) -> int:
@@ -130,11 +134,23 @@ def cmd_measure(args: argparse.Namespace) -> int:
 
     camera = formats.read_camera(args.camera)
     field = formats.read_field(args.field)
-    detect = DetectSettings(**{k: v for k, v in (("min_contrast_dn", args.min_contrast_dn),
-                                                 ("min_area_px", args.min_area_px),
-                                                 ("max_area_px", args.max_area_px)) if v is not None})
-    settings = MeasureSettings(sigma_px=args.sigma_px, correct_eccentricity=not args.no_eccentricity,
-                               detect=detect, code_family=FAMILIES[args.code_family])
+    detect = DetectSettings(
+        **{
+            k: v
+            for k, v in (
+                ("min_contrast_dn", args.min_contrast_dn),
+                ("min_area_px", args.min_area_px),
+                ("max_area_px", args.max_area_px),
+            )
+            if v is not None
+        }
+    )
+    settings = MeasureSettings(
+        sigma_px=args.sigma_px,
+        correct_eccentricity=not args.no_eccentricity,
+        detect=detect,
+        code_family=FAMILIES[args.code_family],
+    )
     if args.max_sigma0_px is not None:
         settings = dataclasses.replace(settings, max_sigma0_px=args.max_sigma0_px)
     measurer = FrameMeasurer(camera, field, settings)
@@ -160,14 +176,23 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from service.sim.render import RenderSettings
     from service.simulate import write_dataset
 
-    settings = RenderSettings(bit_depth=args.bit_depth, hot_spot_dn=args.hot_spot_dn,
-                              read_noise_dn=args.read_noise_dn, blur_sigma_px=args.blur_px)
-    out = write_dataset(args.output, args.frames, path=args.path, seed=args.seed, settings=settings,
-                        distance_mm=args.distance_mm,
-                        camera=formats.read_camera(args.camera) if args.camera else None,
-                        field=formats.read_field(args.field) if args.field else None)
-    print(f"posecell simulate: {args.frames} frames, camera.json, field.json and truth.jsonl in {out}",
-          file=sys.stderr)
+    settings = RenderSettings(
+        bit_depth=args.bit_depth,
+        hot_spot_dn=args.hot_spot_dn,
+        read_noise_dn=args.read_noise_dn,
+        blur_sigma_px=args.blur_px,
+    )
+    out = write_dataset(
+        args.output,
+        args.frames,
+        path=args.path,
+        seed=args.seed,
+        settings=settings,
+        distance_mm=args.distance_mm,
+        camera=formats.read_camera(args.camera) if args.camera else None,
+        field=formats.read_field(args.field) if args.field else None,
+    )
+    print(f"posecell simulate: {args.frames} frames, camera.json, field.json and truth.jsonl in {out}", file=sys.stderr)
     return 0
 
 
@@ -178,10 +203,20 @@ def cmd_targets_sheet(args: argparse.Namespace) -> int:
 
     try:
         options = SheetOptions(
-            width_mm=args.width_mm, height_mm=args.height_mm, n_coded=args.coded, n_uncoded=args.uncoded,
-            coded_diameter_mm=args.coded_diameter_mm, uncoded_diameter_mm=args.uncoded_diameter_mm,
-            margin_mm=args.margin_mm, clearance_mm=args.clearance_mm, first_code=args.first_code,
-            title=args.title, name=args.name, seed=args.seed, ruler_mm=args.ruler_mm, labels=not args.no_labels,
+            width_mm=args.width_mm,
+            height_mm=args.height_mm,
+            n_coded=args.coded,
+            n_uncoded=args.uncoded,
+            coded_diameter_mm=args.coded_diameter_mm,
+            uncoded_diameter_mm=args.uncoded_diameter_mm,
+            margin_mm=args.margin_mm,
+            clearance_mm=args.clearance_mm,
+            first_code=args.first_code,
+            title=args.title,
+            name=args.name,
+            seed=args.seed,
+            ruler_mm=args.ruler_mm,
+            labels=not args.no_labels,
         )
         svg, field = make_sheet(options)
     except ValueError as e:
@@ -191,8 +226,11 @@ def cmd_targets_sheet(args: argparse.Namespace) -> int:
     svg_path.write_text(svg, encoding="utf-8")
     formats.write_json_atomic(args.field, field_json_of_sheet(field, options))
     n_coded = int(field.is_coded.sum())
-    print(f"posecell targets sheet: {options.width_mm:g} x {options.height_mm:g} mm, {n_coded} coded + "
-          f"{len(field) - n_coded} uncoded targets -> {args.svg}, {args.field}", file=sys.stderr)
+    print(
+        f"posecell targets sheet: {options.width_mm:g} x {options.height_mm:g} mm, {n_coded} coded + "
+        f"{len(field) - n_coded} uncoded targets -> {args.svg}, {args.field}",
+        file=sys.stderr,
+    )
     return 0
 
 
@@ -275,9 +313,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Solves T_base_flange_j @ X = Z @ T_field_camera_j for X = T_flange_camera and "
         "Z = T_base_field (Tsai-Lenz, then a joint least-squares refinement).",
     )
-    he.add_argument(
-        "--samples", required=True, help="JSON list of {'T_base_flange': 4x4, 'T_field_camera': 4x4} in mm"
-    )
+    he.add_argument("--samples", required=True, help="JSON list of {'T_base_flange': 4x4, 'T_field_camera': 4x4} in mm")
     he.add_argument("-o", "--output", help="also write the result to this JSON file")
     he.set_defaults(func=cmd_calibrate_handeye)
 
@@ -292,8 +328,13 @@ def build_parser() -> argparse.ArgumentParser:
     rb.add_argument("--robot", required=True, choices=["ur5", "ur10e", "kr15"], help="the nominal model")
     rb.add_argument("--samples", required=True, type=Path, help="calibration poses (CSV)")
     rb.add_argument("--test", type=Path, help="test poses (CSV), reported before/after")
-    rb.add_argument("--tool-mm", type=float, nargs=3, metavar=("X", "Y", "Z"),
-                    help="the measured point on the flange, when the CSV has no commanded positions")
+    rb.add_argument(
+        "--tool-mm",
+        type=float,
+        nargs=3,
+        metavar=("X", "Y", "Z"),
+        help="the measured point on the flange, when the CSV has no commanded positions",
+    )
     rb.add_argument("-o", "--output", type=Path, help="write the corrected model (JSON)")
     rb.set_defaults(func=cmd_calibrate_robot)
 
@@ -314,14 +355,26 @@ def build_parser() -> argparse.ArgumentParser:
     hs.set_defaults(func=cmd_handeye_session)
 
     def calibration_options(q: argparse.ArgumentParser) -> None:
-        q.add_argument("--sigma-px", type=float, default=0.1,
-                       help="a-priori precision of an image coordinate, px: weighs images against scale bars "
-                       "and weighted control (default 0.1); sigma0 is reported in px regardless")
-        q.add_argument("--scale-bar", action="append", metavar="A,B,MM[,SIGMA_MM]",
-                       help="a known distance between targets A and B (repeatable; sigma default 0.01 mm)")
+        q.add_argument(
+            "--sigma-px",
+            type=float,
+            default=0.1,
+            help="a-priori precision of an image coordinate, px: weighs images against scale bars "
+            "and weighted control (default 0.1); sigma0 is reported in px regardless",
+        )
+        q.add_argument(
+            "--scale-bar",
+            action="append",
+            metavar="A,B,MM[,SIGMA_MM]",
+            help="a known distance between targets A and B (repeatable; sigma default 0.01 mm)",
+        )
         q.add_argument("--no-reject", action="store_true", help="keep every observation (no gross-error rejection)")
-        q.add_argument("--code-family", choices=["posecell12", "aicon14"], default="posecell12",
-                       help="ring code of the coded targets in the images (as for measure)")
+        q.add_argument(
+            "--code-family",
+            choices=["posecell12", "aicon14"],
+            default="posecell12",
+            help="ring code of the coded targets in the images (as for measure)",
+        )
         q.add_argument("--min-contrast-dn", type=float, default=None, help="as for measure")
         q.add_argument("--min-area-px", type=int, default=None, help="as for measure")
         q.add_argument("--max-area-px", type=int, default=None, help="as for measure")
@@ -348,12 +401,24 @@ def build_parser() -> argparse.ArgumentParser:
     cc.add_argument("--image-size", help="WIDTHxHEIGHT px (observations without --camera)")
     cc.add_argument("--fix", help="parameters to keep at the start camera's values, e.g. K3,B1,B2")
     cc.add_argument("--control", help="ids of control points that fix the datum (default: inner constraints)")
-    cc.add_argument("--control-sigma-mm", type=float, default=0.0,
-                    help="standard deviation of the control points, mm (default 0: fixed)")
-    cc.add_argument("--residuals", choices=["pixel", "ideal"], default="pixel",
-                    help="minimize pixel residuals (default) or ideal-coordinate residuals (DBAT/PhotoModeler form)")
-    cc.add_argument("--passes", type=int, default=2,
-                    help="measure the images again with the calibrated camera and recalibrate (default 2 passes)")
+    cc.add_argument(
+        "--control-sigma-mm",
+        type=float,
+        default=0.0,
+        help="standard deviation of the control points, mm (default 0: fixed)",
+    )
+    cc.add_argument(
+        "--residuals",
+        choices=["pixel", "ideal"],
+        default="pixel",
+        help="minimize pixel residuals (default) or ideal-coordinate residuals (DBAT/PhotoModeler form)",
+    )
+    cc.add_argument(
+        "--passes",
+        type=int,
+        default=2,
+        help="measure the images again with the calibrated camera and recalibrate (default 2 passes)",
+    )
     calibration_options(cc)
     cc.set_defaults(func=cmd_calibrate_camera)
 
@@ -367,23 +432,41 @@ def build_parser() -> argparse.ArgumentParser:
         "leave-one-epoch-out jackknife), both in rig.json.",
     )
     cr.add_argument("--field", required=True, help="field.json, field.csv or an AICON point list .txt (mm)")
-    cr.add_argument("--camera", nargs="+", required=True, metavar="CAMERA_JSON",
-                    help="camera.json of each camera, master first")
+    cr.add_argument(
+        "--camera", nargs="+", required=True, metavar="CAMERA_JSON", help="camera.json of each camera, master first"
+    )
     cr.add_argument("--images", nargs="+", metavar="DIR", help="one folder of images per camera, same order")
     cr.add_argument("--observations", help="OBS.json whose images carry 'camera' (index) and 'epoch'")
-    cr.add_argument("--pairs", metavar="PAIRS_CSV",
-                    help="instead of --images: one row per epoch, one image path per camera (relative to the file)")
-    cr.add_argument("--pair-by", choices=["auto", "name", "frame", "time"], default="auto",
-                    help="pair --images by file name, frame number in the name, or time (a timestamps.csv "
-                    "'name,t_ns' or 'name,t_s' in each folder); auto: name, else frame number")
-    cr.add_argument("--time-tolerance-s", type=float, default=None,
-                    help="largest exposure-time difference of a pair for --pair-by time (default 0.005)")
-    cr.add_argument("--drop-unpaired", action="store_true",
-                    help="leave out images without a partner (said in the warnings) instead of refusing")
+    cr.add_argument(
+        "--pairs",
+        metavar="PAIRS_CSV",
+        help="instead of --images: one row per epoch, one image path per camera (relative to the file)",
+    )
+    cr.add_argument(
+        "--pair-by",
+        choices=["auto", "name", "frame", "time"],
+        default="auto",
+        help="pair --images by file name, frame number in the name, or time (a timestamps.csv "
+        "'name,t_ns' or 'name,t_s' in each folder); auto: name, else frame number",
+    )
+    cr.add_argument(
+        "--time-tolerance-s",
+        type=float,
+        default=None,
+        help="largest exposure-time difference of a pair for --pair-by time (default 0.005)",
+    )
+    cr.add_argument(
+        "--drop-unpaired",
+        action="store_true",
+        help="leave out images without a partner (said in the warnings) instead of refusing",
+    )
     cr.add_argument("-o", "--output", required=True, help="rig.json to write")
     cr.add_argument("--free-interior", help="interior parameters to refine too, e.g. c,x0,y0 (default none)")
-    cr.add_argument("--survey-field", action="store_true",
-                    help="adjust the targets too (inner constraints on the nominal field) instead of fixing them")
+    cr.add_argument(
+        "--survey-field",
+        action="store_true",
+        help="adjust the targets too (inner constraints on the nominal field) instead of fixing them",
+    )
     calibration_options(cr)
     cr.set_defaults(func=cmd_calibrate_rig)
 
@@ -397,20 +480,37 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--camera", required=True, help="camera.json")
     m.add_argument("--field", required=True, help="field.json or field.csv")
     m.add_argument("--sigma-px", type=float, default=None, help="a-priori image precision, px")
-    m.add_argument("--no-eccentricity", action="store_true",
-                   help="do not correct the perspective bias of circle centres")
-    m.add_argument("--code-family", choices=["posecell12", "aicon14"], default="posecell12",
-                   help="ring code of the coded targets: posecell's own 12-bit targets (default) or "
-                   "AICON-style 14-bit targets as MicMac MMVII reads them (field: an AICON point list .txt)")
-    m.add_argument("--min-contrast-dn", type=float, default=None,
-                   help="smallest target contrast above the local background, 8-bit DN (default 20, and "
-                   "never less than 8 times the noise the detector measures in the image)")
+    m.add_argument(
+        "--no-eccentricity", action="store_true", help="do not correct the perspective bias of circle centres"
+    )
+    m.add_argument(
+        "--code-family",
+        choices=["posecell12", "aicon14"],
+        default="posecell12",
+        help="ring code of the coded targets: posecell's own 12-bit targets (default) or "
+        "AICON-style 14-bit targets as MicMac MMVII reads them (field: an AICON point list .txt)",
+    )
+    m.add_argument(
+        "--min-contrast-dn",
+        type=float,
+        default=None,
+        help="smallest target contrast above the local background, 8-bit DN (default 20, and "
+        "never less than 8 times the noise the detector measures in the image)",
+    )
     m.add_argument("--min-area-px", type=int, default=None, help="smallest blob area, px (default 6)")
-    m.add_argument("--max-area-px", type=int, default=None,
-                   help="largest blob area, px (default 5000); lower it for images where bright patches "
-                   "bigger than any target (stickers, labels) are many")
-    m.add_argument("--max-sigma0-px", type=float, default=None,
-                   help="largest accepted sigma0 of the final adjustment, px (default 0.5)")
+    m.add_argument(
+        "--max-area-px",
+        type=int,
+        default=None,
+        help="largest blob area, px (default 5000); lower it for images where bright patches "
+        "bigger than any target (stickers, labels) are many",
+    )
+    m.add_argument(
+        "--max-sigma0-px",
+        type=float,
+        default=None,
+        help="largest accepted sigma0 of the final adjustment, px (default 0.5)",
+    )
     m.add_argument("images", nargs="+", metavar="IMAGE", help="PNG, TIFF or PGM, 8 or 16 bit")
     m.set_defaults(func=cmd_measure)
 
@@ -487,8 +587,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="sections to run (default: all): accuracy, speed, faults",
     )
     b.add_argument("--frames", type=int, default=120, help="rendered frames for the speed section")
-    b.add_argument("--condition-frames", type=int, default=30,
-                   help="frames per row of the speed section's condition matrix (0: leave it out)")
+    b.add_argument(
+        "--condition-frames",
+        type=int,
+        default=30,
+        help="frames per row of the speed section's condition matrix (0: leave it out)",
+    )
     b.add_argument("--trials", type=int, default=500, help="Monte-Carlo trials for the accuracy tables")
     b.add_argument("--seed", type=int, default=1)
     b.add_argument("--rounds", type=int, default=5, help="repetitions of each fault for the faults section")

@@ -25,8 +25,15 @@ def circle_poses(n: int, radius_mm: float = 60.0, distance_mm: float = 1000.0) -
     for k in range(n):
         a = 2 * np.pi * k / n
         look = (radius_mm * np.cos(a), radius_mm * np.sin(a), 0.0)
-        out.append(reference_pose(view_angle_deg=80.0, distance_mm=distance_mm, roll_deg=5.0 * np.sin(a),
-                                  azimuth_deg=np.degrees(a), look_at_mm=look))
+        out.append(
+            reference_pose(
+                view_angle_deg=80.0,
+                distance_mm=distance_mm,
+                roll_deg=5.0 * np.sin(a),
+                azimuth_deg=np.degrees(a),
+                look_at_mm=look,
+            )
+        )
     return out
 
 
@@ -53,14 +60,18 @@ def run_demo(n_frames: int = 60, rate_hz: float = 25.0, laps: int = 1, seed: int
                 dt, dr = pose_difference(r.T_field_camera, T)
                 times_ms[outcome.mode].append(ms)
                 errors.append(dt)
-                line.update({
-                    "ok": True,
-                    "xyz_mm": np.round(np.asarray(r.T_field_camera)[:3, 3], 4).tolist(),
-                    "sigma_position_mm": np.round(r.sigma_position_mm, 4).tolist(),
-                    "error_vs_truth_mm": round(dt, 4),
-                    "error_vs_truth_deg": round(dr, 5),
-                    "n_coded": r.n_coded, "n_uncoded": r.n_uncoded, "rms_px": round(r.rms_px, 4),
-                })
+                line.update(
+                    {
+                        "ok": True,
+                        "xyz_mm": np.round(np.asarray(r.T_field_camera)[:3, 3], 4).tolist(),
+                        "sigma_position_mm": np.round(r.sigma_position_mm, 4).tolist(),
+                        "error_vs_truth_mm": round(dt, 4),
+                        "error_vs_truth_deg": round(dr, 5),
+                        "n_coded": r.n_coded,
+                        "n_uncoded": r.n_uncoded,
+                        "rms_px": round(r.rms_px, 4),
+                    }
+                )
             else:
                 line.update(r.to_dict())
             print(json.dumps(line), flush=True)

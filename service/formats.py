@@ -222,8 +222,11 @@ def field_from_json(data: Any, source: str = "field") -> Field:
         code = t.get("code")
         codes.append(-1 if code is None else _whole(source, f"{where} code", code, 0, MAX_CODE))
         d = t.get("diameter_mm")
-        diam.append(math.nan if d is None else
-                    _number(source, f"{where} diameter_mm", d, 0.0, MAX_DIAMETER_MM, "mm", lo_open=True))
+        diam.append(
+            math.nan
+            if d is None
+            else _number(source, f"{where} diameter_mm", d, 0.0, MAX_DIAMETER_MM, "mm", lo_open=True)
+        )
     try:
         return Field(
             name=str(data.get("name", Path(source).stem)),
@@ -269,8 +272,9 @@ def field_from_csv(text: str, source: str = "field.csv") -> Field:
             if len(cells) > 5 and cells[5] != "":
                 t["diameter_mm"] = float(cells[5])
         except ValueError:
-            raise FormatError(f"{source}: row {row!r} has a code that is not a whole number or a diameter "
-                              "that is not a number") from None
+            raise FormatError(
+                f"{source}: row {row!r} has a code that is not a whole number or a diameter that is not a number"
+            ) from None
         targets.append(t)
     return field_from_json({"name": Path(source).stem, "targets": targets}, source)
 
@@ -409,8 +413,10 @@ def image_observations_to_json(images: list[ImageObservations]) -> dict[str, Any
             d["camera"] = int(im.camera)
         if im.epoch is not None:
             d["epoch"] = im.epoch
-        d["points"] = [{"id": t, "uv": [round(float(q[0]), 5), round(float(q[1]), 5)]}
-                       for t, q in zip(im.ids, np.asarray(im.uv).reshape(-1, 2), strict=True)]
+        d["points"] = [
+            {"id": t, "uv": [round(float(q[0]), 5), round(float(q[1]), 5)]}
+            for t, q in zip(im.ids, np.asarray(im.uv).reshape(-1, 2), strict=True)
+        ]
         out.append(d)
     return {"images": out}
 
@@ -478,8 +484,10 @@ def rig_pairs_from_csv(text: str, n_cameras: int, source: str = "pairs.csv") -> 
         if not any(cells) or cells[0].startswith("#"):
             continue
         if len(cells) != n_cameras or not all(cells):
-            raise FormatError(f"{source}: row {k + 1} names {len([c for c in cells if c])} images, but the rig has "
-                              f"{n_cameras} cameras (one image per camera, comma-separated)")
+            raise FormatError(
+                f"{source}: row {k + 1} names {len([c for c in cells if c])} images, but the rig has "
+                f"{n_cameras} cameras (one image per camera, comma-separated)"
+            )
         rows.append(cells)
     if not rows:
         raise FormatError(f"{source}: no pairs")

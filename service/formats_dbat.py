@@ -91,12 +91,22 @@ def read_pm_export(path: str | os.PathLike[str], unit_mm: float = 1000.0) -> Pho
         raise FormatError(f"{path}: lines 2 and 4 are not a PhotoModeler export header")
     width, height = int(head[2]), int(head[3])
     c, xp, yp, fw, fh = cam[:5]
-    pm = dict(zip(("c_mm", "xp_mm", "yp_mm", "format_width_mm", "format_height_mm", "K1", "K2", "K3", "P1", "P2"),
-                  cam[:10], strict=True))
+    pm = dict(
+        zip(
+            ("c_mm", "xp_mm", "yp_mm", "format_width_mm", "format_height_mm", "K1", "K2", "K3", "P1", "P2"),
+            cam[:10],
+            strict=True,
+        )
+    )
     psx, psy = fw / width, fh / height
-    camera = BrownFraser(width, height, (psx, psy), c,
-                         x0_mm=(xp / psx - PM_PIXEL_OFFSET - (width - 1) / 2) * psx,
-                         y0_mm=(yp / psy - PM_PIXEL_OFFSET - (height - 1) / 2) * psy)
+    camera = BrownFraser(
+        width,
+        height,
+        (psx, psy),
+        c,
+        x0_mm=(xp / psx - PM_PIXEL_OFFSET - (width - 1) / 2) * psx,
+        y0_mm=(yp / psy - PM_PIXEL_OFFSET - (height - 1) / 2) * psy,
+    )
     names: dict[int, str] = {}
     image_line = re.compile(r"^\s*(\d+)\s+(\S*[A-Za-z]\S*)\s*$")
     k = 5
@@ -128,11 +138,23 @@ def read_pm_export(path: str | os.PathLike[str], unit_mm: float = 1000.0) -> Pho
         uv = np.array([[m[2], m[3]] for m in rows]).reshape(-1, 2) - PM_PIXEL_OFFSET
         images.append(ImagePoints(names[j], tuple(m[1] for m in rows), uv))
     sig = sorted({m[4] for m in marks})
-    field = Field(name=Path(path).stem, ids=tuple(p[0] for p in points),
-                  xyz=np.array([p[1] for p in points]).reshape(-1, 3), codes=np.full(len(points), -1),
-                  diameters_mm=np.full(len(points), math.nan))
-    return PhotoModelerProject(str(lines[0]).strip(), width, height, camera, pm, tuple(images), field,
-                               float(sig[0]) if len(sig) == 1 else float(np.median([m[4] for m in marks])))
+    field = Field(
+        name=Path(path).stem,
+        ids=tuple(p[0] for p in points),
+        xyz=np.array([p[1] for p in points]).reshape(-1, 3),
+        codes=np.full(len(points), -1),
+        diameters_mm=np.full(len(points), math.nan),
+    )
+    return PhotoModelerProject(
+        str(lines[0]).strip(),
+        width,
+        height,
+        camera,
+        pm,
+        tuple(images),
+        field,
+        float(sig[0]) if len(sig) == 1 else float(np.median([m[4] for m in marks])),
+    )
 
 
 def read_dbat_control(path: str | os.PathLike[str], unit_mm: float = 1000.0) -> Field:
@@ -154,11 +176,20 @@ def read_dbat_control(path: str | os.PathLike[str], unit_mm: float = 1000.0) -> 
 
 
 _REPORT_KEYS = {
-    "Camera Constant": "cc", "px - principal point x": "px", "py - principal point y": "py",
-    "K1 - radial distortion 1": "K1", "K2 - radial distortion 2": "K2", "K3 - radial distortion 3": "K3",
-    "P1 - decentering distortion 1": "P1", "P2 - decentering distortion 2": "P2",
-    "as - off-unit aspect parameter": "as", "sk - skew": "sk", "Pixel width": "pixel_width",
-    "Pixel height": "pixel_height", "Image width": "image_width", "Image height": "image_height",
+    "Camera Constant": "cc",
+    "px - principal point x": "px",
+    "py - principal point y": "py",
+    "K1 - radial distortion 1": "K1",
+    "K2 - radial distortion 2": "K2",
+    "K3 - radial distortion 3": "K3",
+    "P1 - decentering distortion 1": "P1",
+    "P2 - decentering distortion 2": "P2",
+    "as - off-unit aspect parameter": "as",
+    "sk - skew": "sk",
+    "Pixel width": "pixel_width",
+    "Pixel height": "pixel_height",
+    "Image width": "image_width",
+    "Image height": "image_height",
 }
 
 

@@ -65,7 +65,8 @@ class Sample:
     def to_dict(self) -> dict[str, Any]:
         return {
             "points": [{"id": i, "uv": [float(u), float(v)]} for i, (u, v) in zip(self.ids, self.uv, strict=True)]
-            if self.uv is not None else [],
+            if self.uv is not None
+            else [],
             "T_base_flange": self.T_base_flange.tolist(),
             "T_field_camera": self.T_field_camera.tolist(),
             "sigma_position_mm": self.sigma_position_mm,
@@ -124,8 +125,10 @@ class HandEyeSession:
             dR = [recent[-1].T_base_flange[:3, :3].T @ s.T_base_flange[:3, :3] for s in recent]
             spread_deg = max(float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))) for R in dR)
             if spread_mm > STILL_POSITION_MM or spread_deg > STILL_ANGLE_DEG:
-                raise SessionError("robot_moving", f"the robot moved {spread_mm:.2f} mm in the last "
-                                                   f"{STILL_WINDOW_S} s; record samples at rest")
+                raise SessionError(
+                    "robot_moving",
+                    f"the robot moved {spread_mm:.2f} mm in the last {STILL_WINDOW_S} s; record samples at rest",
+                )
         result = worker.request_measurement(self.camera).result(timeout=timeout_s).result
         if not result.get("ok"):
             raise SessionError(result.get("reason", "no_frame"), result.get("message", "the frame was not measured"))
@@ -157,8 +160,12 @@ class HandEyeSession:
 
     # --- 3. solve and apply -------------------------------------------------------------------
 
-    def solve(self, camera: BrownFraser | None = None, target_field: Field | None = None,
-              run: Callable[..., dict[str, Any]] | None = None) -> dict[str, Any]:
+    def solve(
+        self,
+        camera: BrownFraser | None = None,
+        target_field: Field | None = None,
+        run: Callable[..., dict[str, Any]] | None = None,
+    ) -> dict[str, Any]:
         """:func:`solve_samples` over the recorded samples, by ``run(fn, *args)`` if given (the
         service's solver process) and stored as the session's result."""
         with self.lock:
@@ -205,8 +212,9 @@ def _call(fn: Callable[..., dict[str, Any]], *args: Any) -> dict[str, Any]:
     return fn(*args)
 
 
-def solve_samples(samples: list[Sample], camera: BrownFraser | None = None,
-                  target_field: Field | None = None) -> dict[str, Any]:
+def solve_samples(
+    samples: list[Sample], camera: BrownFraser | None = None, target_field: Field | None = None
+) -> dict[str, Any]:
     """Tsai–Lenz + pose-level refinement; then, given the camera and field, the refinement on the
     image observations with the robot's errors as unknowns (the answer when it converges)."""
     if len(samples) < 3:
@@ -218,18 +226,22 @@ def solve_samples(samples: list[Sample], camera: BrownFraser | None = None,
     sig_pos = float(np.median([np.mean(s.sigma_position_mm) for s in samples]))
     sig_rot = float(np.median([np.mean(s.sigma_rotation_deg) for s in samples]))
     try:
-        res = calibrate_handeye(P, C, sigma_camera_position_mm=max(sig_pos, 1e-3),
-                                sigma_camera_rotation_deg=max(sig_rot, 1e-4))
+        res = calibrate_handeye(
+            P, C, sigma_camera_position_mm=max(sig_pos, 1e-3), sigma_camera_rotation_deg=max(sig_rot, 1e-4)
+        )
     except SolveError as e:
         raise SessionError(e.reason, e.message) from None
     out = {"ok": True, **res.to_dict(), "n_samples": len(samples), "method": "pose-level"}
-    if camera is not None and target_field is not None and all(s.uv is not None and len(s.ids) >= 4
-                                                                for s in samples):
-        img = [ImageSample(s.T_base_flange, target_field.xyz[target_field.indices_of(s.ids)], s.uv)
-               for s in samples]
+    if camera is not None and target_field is not None and all(s.uv is not None and len(s.ids) >= 4 for s in samples):
+        img = [ImageSample(s.T_base_flange, target_field.xyz[target_field.indices_of(s.ids)], s.uv) for s in samples]
         try:
-            ref = refine_handeye_on_images(camera, img, res.T_flange_camera, res.T_base_field,
-                                           sigma_px=max(0.01, float(np.median([s.rms_px for s in samples]))))
+            ref = refine_handeye_on_images(
+                camera,
+                img,
+                res.T_flange_camera,
+                res.T_base_field,
+                sigma_px=max(0.01, float(np.median([s.rms_px for s in samples]))),
+            )
         except SolveError as e:
             out["warnings"] = [*out["warnings"], f"image-level refinement failed: {e.message}"]
         else:
@@ -246,7 +258,9 @@ def solve_samples(samples: list[Sample], camera: BrownFraser | None = None,
                     robot_error_rotation_deg=ref.robot_error_rotation_deg.tolist(),
                     rms_px_per_sample=ref.rms_px.tolist(),
                     sigma0_images=ref.sigma0,
-                    pose_level={"T_flange_camera": res.T_flange_camera.tolist(),
-                                "T_base_field": res.T_base_field.tolist()},
+                    pose_level={
+                        "T_flange_camera": res.T_flange_camera.tolist(),
+                        "T_base_field": res.T_base_field.tolist(),
+                    },
                 )
     return out

@@ -60,15 +60,22 @@ class FramePairer:
     ) -> None:
         # a camera's delay floor moves with the host's load (its arrival stamps are the host's): its rate
         # is fitted over half a minute or more only, and until then the offset follows the last 10 s
-        self.camera_clock = ClockMapper(window=CAMERA_CLOCK_WINDOW, min_latency_ns=camera_transport_latency_s * 1e9,
-                                        min_rate_span_ns=CAMERA_RATE_SPAN_S * 1e9,
-                                        offset_span_ns=CAMERA_OFFSET_SPAN_S * 1e9)
+        self.camera_clock = ClockMapper(
+            window=CAMERA_CLOCK_WINDOW,
+            min_latency_ns=camera_transport_latency_s * 1e9,
+            min_rate_span_ns=CAMERA_RATE_SPAN_S * 1e9,
+            offset_span_ns=CAMERA_OFFSET_SPAN_S * 1e9,
+        )
         # the robot's window (2000 reports: 4 s at 500 Hz) is too short for a rate when the floor moves
         # (it swung by hundreds of ppm on a loaded host): the offset follows the last 2 s instead, where a
         # controller drifting by 50 ppm errs by 0.1 ms at most
-        self.robot_clock = ClockMapper(window=2000, min_latency_ns=robot_transport_latency_s * 1e9, refit_every=50,
-                                       min_rate_span_ns=ROBOT_RATE_SPAN_S * 1e9,
-                                       offset_span_ns=ROBOT_OFFSET_SPAN_S * 1e9)
+        self.robot_clock = ClockMapper(
+            window=2000,
+            min_latency_ns=robot_transport_latency_s * 1e9,
+            refit_every=50,
+            min_rate_span_ns=ROBOT_RATE_SPAN_S * 1e9,
+            offset_span_ns=ROBOT_OFFSET_SPAN_S * 1e9,
+        )
         self.camera_latency_ns = camera_transport_latency_s * 1e9
         self.max_gap_ns = max_sample_gap_s * 1e9
         self._robot_fed_until_ns = -1

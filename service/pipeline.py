@@ -38,8 +38,9 @@ from service.core.tracking import PoseSample, predict_pose
 Array = NDArray[np.float64]
 
 
-def _observations(ids: Sequence[str], uv: Array, residuals: Array, coded: list[bool],
-                  used: list[bool]) -> tuple[TargetObservation, ...]:
+def _observations(
+    ids: Sequence[str], uv: Array, residuals: Array, coded: list[bool], used: list[bool]
+) -> tuple[TargetObservation, ...]:
     """TargetObservations of the rows of ``uv`` and ``residuals`` (N, 2) px. A frozen dataclass's
     ``__init__`` sets each field through ``object.__setattr__``: for the ~230 targets of a frame
     that cost a fifth of an ROI frame's budget, so the instances are made empty (by ``map``, without
@@ -61,8 +62,13 @@ def pose_result_from_resection(
     if rows is None:
         rows = field.indices_of(list(ids))
     # Python scalars first: indexing numpy arrays element by element costs more than the resection
-    targets = _observations(ids, np.asarray(uv, dtype=np.float64).reshape(-1, 2), result.residuals_px,
-                            (field.codes[rows] >= 0).tolist(), result.inliers.tolist())
+    targets = _observations(
+        ids,
+        np.asarray(uv, dtype=np.float64).reshape(-1, 2),
+        result.residuals_px,
+        (field.codes[rows] >= 0).tolist(),
+        result.inliers.tolist(),
+    )
     return PoseResult(
         T_field_camera=result.T_field_camera,
         sigma_position_mm=result.sigma_position_mm,
@@ -133,8 +139,9 @@ TIGHT_SLACK = 0.25
 MIN_AREA_SHARE, MAX_AREA_FACTOR = 0.25, 1.5
 
 
-def detect_settings_for_range(detect: DetectSettings, field: Field, camera: BrownFraser,
-                              range_mm: tuple[float, float]) -> DetectSettings:
+def detect_settings_for_range(
+    detect: DetectSettings, field: Field, camera: BrownFraser, range_mm: tuple[float, float]
+) -> DetectSettings:
     """``detect`` with its area limits narrowed to the targets ``field`` can show at ``range_mm``
     (nearest, farthest; mm) through ``camera``: the smallest disk at the far end seen obliquely,
     the largest at the near end plus 2 px of blur (unknown diameters: 10 mm coded, 6 mm uncoded).
@@ -148,8 +155,11 @@ def detect_settings_for_range(detect: DetectSettings, field: Field, camera: Brow
     r_small, r_big = 0.5 * float(d.min()) * px / far, 0.5 * float(d.max()) * px / near
     min_area = max(3, int(MIN_AREA_SHARE * np.pi * r_small**2))
     max_area = int(np.ceil(MAX_AREA_FACTOR * np.pi * (r_big + 2.0) ** 2))
-    return replace(detect, min_area_px=max(detect.min_area_px, min_area),
-                   max_area_px=max(min(detect.max_area_px, max_area), min_area + 1))
+    return replace(
+        detect,
+        min_area_px=max(detect.min_area_px, min_area),
+        max_area_px=max(min(detect.max_area_px, max_area), min_area + 1),
+    )
 
 
 def _nominal(camera: BrownFraser) -> bool:
@@ -164,10 +174,14 @@ def _with_calibration_hint(e: SolveError, camera: BrownFraser) -> SolveError:
     them do (a 24 mm lens: 0.7 px against the 0.5 px limit)."""
     if not _nominal(camera) or not ({"sigma0_px", "rejected"} & set(e.details)):
         return e
-    return SolveError(e.reason, f"{e.message.rstrip('.')}. The camera is not calibrated (its camera.json has no "
-                      "distortion terms and no sigma), and an uncorrected lens alone does this: run "
-                      "`posecell calibrate camera` on images of the field and measure with the camera.json it "
-                      "writes.", e.details)
+    return SolveError(
+        e.reason,
+        f"{e.message.rstrip('.')}. The camera is not calibrated (its camera.json has no "
+        "distortion terms and no sigma), and an uncorrected lens alone does this: run "
+        "`posecell calibrate camera` on images of the field and measure with the camera.json it "
+        "writes.",
+        e.details,
+    )
 
 
 class _Clock:
@@ -189,8 +203,10 @@ class FrameMeasurer:
         self.field = field
         self.settings = settings or MeasureSettings()
         if self.settings.range_mm is not None:
-            self.settings = replace(self.settings, detect=detect_settings_for_range(
-                self.settings.detect, field, camera, self.settings.range_mm))
+            self.settings = replace(
+                self.settings,
+                detect=detect_settings_for_range(self.settings.detect, field, camera, self.settings.range_mm),
+            )
         self._roi_detect = self.settings.detect  # with the last full frame's noise, for the ROI windows' levels
         self._history: deque[PoseSample] = deque(maxlen=2)
         self._mask: NDArray[np.uint8] | None = None  # detect_blobs' scratch, reused frame after frame
@@ -202,9 +218,9 @@ class FrameMeasurer:
         resection_kernel.warm_up()
         roi_kernel.warm_up()
         decode_warm_up()
-        self._radius_mm = np.where(
-            np.isfinite(field.diameters_mm), field.diameters_mm, np.where(field.is_coded, 10.0, 6.0)
-        ) / 2.0
+        self._radius_mm = (
+            np.where(np.isfinite(field.diameters_mm), field.diameters_mm, np.where(field.is_coded, 10.0, 6.0)) / 2.0
+        )
         # per field row, for the compiled window sizes
         self._radius_c = self._radius_mm * camera.c_mm
         self._coded = np.ascontiguousarray(field.codes >= 0)
@@ -240,9 +256,7 @@ class FrameMeasurer:
         else:
             self._history.clear()
 
-    def _finish(
-        self, rows: NDArray[np.int64], uv: Array, T_init: Array | None, clock: _Clock
-    ) -> PoseResult:
+    def _finish(self, rows: NDArray[np.int64], uv: Array, T_init: Array | None, clock: _Clock) -> PoseResult:
         """Adjust over matched targets (with eccentricity correction) and build the result."""
         s = self.settings
         p = self.field.xyz[rows]
@@ -280,8 +294,9 @@ class FrameMeasurer:
         try:
             result = self._identify_and_resect(image, blobs, clock)
         except SolveError as e:
-            return Outcome(Failure.from_error(_with_calibration_hint(e, self.camera)), "full", clock.ms,
-                           len(blobs), counts)
+            return Outcome(
+                Failure.from_error(_with_calibration_hint(e, self.camera)), "full", clock.ms, len(blobs), counts
+            )
         return Outcome(result, "full", clock.ms, len(blobs), counts)
 
     def _identify_and_resect(self, image: NDArray[np.generic], blobs: Blobs, clock: _Clock) -> PoseResult:
@@ -304,9 +319,7 @@ class FrameMeasurer:
                 f"{len(coded.rows)} coded targets of the field identified, at least {s.min_coded} are needed",
                 {"n_blobs": len(blobs), "n_coded": len(coded.rows)},
             )
-        res = resect(
-            self.camera, self.field.xyz[coded.rows], blobs.uv[coded.blobs], sigma_px=s.sigma_px
-        )
+        res = resect(self.camera, self.field.xyz[coded.rows], blobs.uv[coded.blobs], sigma_px=s.sigma_px)
         coded_rows = coded.rows[res.inliers]
         coded_blobs = coded.blobs[res.inliers]
         # the paper's second step: every other target, predicted from the coded pose
@@ -347,8 +360,13 @@ class FrameMeasurer:
                 ok = found >= 0
                 if ok.sum() < max(s.min_targets, s.roi_min_fraction * uncoded.sum()):
                     return None
-                T_pred = resect(self.camera, self.field.xyz[rows[uncoded][ok]], blobs.uv[found[ok]],
-                                sigma_px=s.sigma_px, T_field_camera_init=T_pred).T_field_camera
+                T_pred = resect(
+                    self.camera,
+                    self.field.xyz[rows[uncoded][ok]],
+                    blobs.uv[found[ok]],
+                    sigma_px=s.sigma_px,
+                    T_field_camera_init=T_pred,
+                ).T_field_camera
             except (ValueError, SolveError):
                 return None
             rows, uv_pred, depth = project_field(self.camera, self.field, T_pred, margin_px=4.0, with_depth=True)
@@ -367,8 +385,15 @@ class FrameMeasurer:
             return None
         return Outcome(result, "roi", clock.ms, len(rows_ok))
 
-    def _measure_targets(self, image: NDArray[np.generic], rows: NDArray[np.int64], uv_pred: Array, depth: Array,
-                         slack: float, check_centred: bool = False) -> tuple[NDArray[np.int64], Array] | None:
+    def _measure_targets(
+        self,
+        image: NDArray[np.generic],
+        rows: NDArray[np.int64],
+        uv_pred: Array,
+        depth: Array,
+        slack: float,
+        check_centred: bool = False,
+    ) -> tuple[NDArray[np.int64], Array] | None:
         """Field rows and measured pixels (N, 2) of the targets found in windows about their
         predictions; None when too few are found or, with ``check_centred``, when a disk lies
         further from its window's centre than ``slack`` times the prediction allowance."""
@@ -393,6 +418,11 @@ class FrameMeasurer:
         square window's corners and the blur need the margin).
         """
         # compiled: as array expressions they were 2 % of an ROI frame
-        return roi_kernel.window_half_size_kernel(self._radius_c, self._coded, rows, depth,
-                                                  float(self.camera.mean_pixel_size_mm),
-                                                  slack * self.settings.roi_prediction_error_px)
+        return roi_kernel.window_half_size_kernel(
+            self._radius_c,
+            self._coded,
+            rows,
+            depth,
+            float(self.camera.mean_pixel_size_mm),
+            slack * self.settings.roi_prediction_error_px,
+        )

@@ -45,15 +45,26 @@ class RigCombiner:
         self._last_emitted_ns = max(t)
         return self._combine([self._latest[c] for c in self.cameras], rig, field, handeye, t[0])
 
-    def _combine(self, results: list[dict[str, Any]], rig: Rig, field: Field, handeye: Any,
-                 t_ns: int) -> dict[str, Any]:
+    def _combine(
+        self, results: list[dict[str, Any]], rig: Rig, field: Field, handeye: Any, t_ns: int
+    ) -> dict[str, Any]:
         master = results[0]
-        head = {"camera": RIG, "seq": master.get("seq"), "t_exposure_host_ns": t_ns, "t_wall": master.get("t_wall"),
-                "mode": "intersection", "cameras": self.cameras}
+        head = {
+            "camera": RIG,
+            "seq": master.get("seq"),
+            "t_exposure_host_ns": t_ns,
+            "t_wall": master.get("t_wall"),
+            "mode": "intersection",
+            "cameras": self.cameras,
+        }
         failed = [r for r in results if not r.get("ok")]
         if failed:
-            return {"ok": False, "reason": failed[0].get("reason", Reason.too_few_targets),
-                    "message": f"camera {failed[0].get('camera')}: {failed[0].get('message', 'no pose')}", **head}
+            return {
+                "ok": False,
+                "reason": failed[0].get("reason", Reason.too_few_targets),
+                "message": f"camera {failed[0].get('camera')}: {failed[0].get('message', 'no pose')}",
+                **head,
+            }
         ids = sorted({t["id"] for r in results for t in r["targets"] if not t.get("rejected")})
         index = {tid: i for i, tid in enumerate(ids)}
         uv = np.full((len(results), len(ids), 2), np.nan)
@@ -86,8 +97,11 @@ class RigCombiner:
             if master.get("T_base_flange") is not None:
                 T_rep = np.asarray(master["T_base_flange"])
                 dpos, dang = pose_difference(T_meas, T_rep)
-                out["deviation"] = {"position_mm": round(dpos, 4), "angle_deg": round(dang, 5),
-                                    "vector_mm": [round(float(v), 4) for v in T_meas[:3, 3] - T_rep[:3, 3]]}
+                out["deviation"] = {
+                    "position_mm": round(dpos, 4),
+                    "angle_deg": round(dang, 5),
+                    "vector_mm": [round(float(v), 4) for v in T_meas[:3, 3] - T_rep[:3, 3]],
+                }
         if "truth" in master:
             out["truth"] = master["truth"]
         return out

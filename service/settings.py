@@ -77,8 +77,7 @@ class StrobeConfig(_Section):
     source: str = "ExposureActive"
     inverted: bool = False
     delay_us: float = Field(0.0, ge=0, le=1e6, description="timer sources only: delay, µs, [0, 1 s]")
-    duration_us: float | None = Field(
-        None, gt=0, le=1e6, description="timer sources only: pulse length, µs, (0, 1 s]")
+    duration_us: float | None = Field(None, gt=0, le=1e6, description="timer sources only: pulse length, µs, (0, 1 s]")
 
 
 _ROI_MAX_PX = 65_535
@@ -91,15 +90,18 @@ class CameraConfig(_Section):
     driver: Literal["sim", "aravis", "v4l2"] = "sim"
     options: dict[str, Any] = {}  # driver constructor options (aravis: device, packet_size, ...)
     exposure_us: float | None = Field(
-        2000.0, gt=0, le=10_000_000, description="exposure time, µs, (0, 10 s]; none: leave the camera's")
+        2000.0, gt=0, le=10_000_000, description="exposure time, µs, (0, 10 s]; none: leave the camera's"
+    )
     gain_db: float | None = Field(None, ge=-20, le=60, description="gain, dB, [-20, 60]; none: leave the camera's")
     frame_rate_hz: float | None = Field(
-        20.0, ge=0.1, le=10_000, description="free-run frame rate, Hz, [0.1, 10 000]; none: leave the camera's")
+        20.0, ge=0.1, le=10_000, description="free-run frame rate, Hz, [0.1, 10 000]; none: leave the camera's"
+    )
     trigger: TriggerMode = TriggerMode.FREE_RUN
     trigger_line: str = "Line0"
     pixel_format: Literal["Mono8", "Mono12", "Mono16"] | None = None
     roi: tuple[_RoiOffsetPx, _RoiOffsetPx, _RoiSizePx, _RoiSizePx] | None = Field(
-        None, description="x, y, width, height, px: offsets [0, 65 535], sizes [1, 65 535]; none: full sensor")
+        None, description="x, y, width, height, px: offsets [0, 65 535], sizes [1, 65 535]; none: full sensor"
+    )
     strobe: StrobeConfig | None = StrobeConfig()
     # smallest delay from exposure end to the frame's arrival (readout + transfer): the part of
     # the latency the clock mapping cannot see; the worker reports what remains
@@ -133,13 +135,19 @@ class ProcessingConfig(_Section):
     min_targets: int = Field(6, ge=4, le=100_000, description="targets needed for a pose, [4, 100 000]")
     min_coded: int = Field(4, ge=3, le=100_000, description="coded targets needed for a pose, [3, 100 000]")
     sigma_px: float | None = Field(
-        None, gt=0, le=10, description="a-priori image precision, px, (0, 10]; none: from the detector")
+        None, gt=0, le=10, description="a-priori image precision, px, (0, 10]; none: from the detector"
+    )
     max_sigma0_px: float = Field(0.5, gt=0, le=100, description="largest accepted sigma0 of a pose, px, (0, 100]")
     correct_eccentricity: bool = True
-    min_contrast_dn: float | None = Field(None, gt=0, le=65_535, description=(
-        "detection threshold above the local background, DN, (0, 65 535]; none: the detector's"))
+    min_contrast_dn: float | None = Field(
+        None,
+        gt=0,
+        le=65_535,
+        description=("detection threshold above the local background, DN, (0, 65 535]; none: the detector's"),
+    )
     max_area_px: int | None = Field(
-        None, gt=0, le=100_000_000, description="largest target image, px, (0, 10^8]; none: the detector's")
+        None, gt=0, le=100_000_000, description="largest target image, px, (0, 10^8]; none: the detector's"
+    )
 
 
 class CalibrationConfig(_Section):
@@ -153,8 +161,12 @@ class CalibrationConfig(_Section):
 
 class StorageConfig(_Section):
     database: str = "measurements.sqlite"  # relative to state_dir
-    retention_days: float | None = Field(30.0, gt=0, le=36_500, description=(
-        "measurements and events older than this are deleted, days, (0, 36 500]; none: kept"))
+    retention_days: float | None = Field(
+        30.0,
+        gt=0,
+        le=36_500,
+        description=("measurements and events older than this are deleted, days, (0, 36 500]; none: kept"),
+    )
     # streaming results are many; keep one every N seconds (0: all), triggered ones always
     stream_every_s: float = Field(1.0, ge=0, le=86_400, description="stored streaming interval, s, [0, 86 400]")
 
@@ -278,8 +290,11 @@ def with_runtime_overrides(settings: Settings, overrides: Any) -> Settings:
     cameras = []
     for c in settings.cameras:
         try:
-            cameras.append(CameraConfig.model_validate(
-                {**c.model_dump(), **by_name.get(c.name, {}), "driver": c.driver, "options": c.options}))
+            cameras.append(
+                CameraConfig.model_validate(
+                    {**c.model_dump(), **by_name.get(c.name, {}), "driver": c.driver, "options": c.options}
+                )
+            )
         except ValidationError as e:
             raise SettingsError(f"bad runtime overrides: {validation_problems(e, f'cameras.{c.name}.')}") from None
     try:

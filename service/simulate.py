@@ -68,12 +68,17 @@ def write_dataset(
             frame = render_frame(camera, field, T, settings, rng)
             name = f"frame_{k:04d}.png"
             formats.write_image(out / name, frame.image)
-            truth.write(json.dumps({
-                "image": name,
-                "T_field_camera": np.round(T, 9).tolist(),
-                "targets": [
-                    {"id": i, "uv": np.round(uv, 5).tolist(), "fully_visible": bool(v)}
-                    for i, uv, v in zip(frame.ids, frame.uv_true, frame.fully_visible, strict=True)
-                ],
-            }) + "\n")
+            truth.write(
+                json.dumps(
+                    {
+                        "image": name,
+                        "T_field_camera": np.round(T, 9).tolist(),
+                        "targets": [
+                            {"id": i, "uv": np.round(uv, 5).tolist(), "fully_visible": bool(v)}
+                            for i, uv, v in zip(frame.ids, frame.uv_true, frame.fully_visible, strict=True)
+                        ],
+                    }
+                )
+                + "\n"
+            )
     return out

@@ -49,13 +49,27 @@ from service.formats import null_for_unknown
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CSV_COLUMNS", "EVENT_LEVELS", "SCHEMA_VERSION", "MeasurementStore", "StorageError", "StoreFull",
-           "iso_utc"]
+__all__ = ["CSV_COLUMNS", "EVENT_LEVELS", "SCHEMA_VERSION", "MeasurementStore", "StorageError", "StoreFull", "iso_utc"]
 
 EVENT_LEVELS = ("debug", "info", "warning", "error")
 # measurement columns besides the whole result's JSON; also the CSV export's columns
-CSV_COLUMNS = ("id", "t_wall", "t_host_ns", "camera", "ok", "reason", "message", "pose_of",
-               "x_mm", "y_mm", "z_mm", "deviation_position_mm", "deviation_angle_deg", "rms_px", "n_targets")
+CSV_COLUMNS = (
+    "id",
+    "t_wall",
+    "t_host_ns",
+    "camera",
+    "ok",
+    "reason",
+    "message",
+    "pose_of",
+    "x_mm",
+    "y_mm",
+    "z_mm",
+    "deviation_position_mm",
+    "deviation_angle_deg",
+    "rms_px",
+    "n_targets",
+)
 _ROW_COLUMNS = tuple(c for c in CSV_COLUMNS if c != "message")
 _RETENTION_CHUNK = 10_000
 _RETENTION_MAX_CHUNKS = 20  # per run, so queued rows never wait long behind a purge
@@ -77,6 +91,7 @@ class StoreFull(StorageError):
 
 
 # ---------------------------------------------------------------- schema and migrations
+
 
 def _migrate_to_v1(conn: sqlite3.Connection) -> None:
     conn.execute("""CREATE TABLE measurements (
@@ -103,6 +118,7 @@ SCHEMA_VERSION = len(_MIGRATIONS)
 
 
 # ---------------------------------------------------------------- row conversion
+
 
 def iso_utc(t: datetime) -> str:
     """Fixed-width ISO 8601 UTC text that sorts like the time.
@@ -184,7 +200,9 @@ def _measurement_row(result: Mapping[str, Any]) -> tuple[Any, ...]:
         1 if result["ok"] else 0,
         None if reason is None else str(reason),
         *_pose_columns(result),
-        _real(dev_pos), _real(dev_ang), _real(result.get("rms_px")),
+        _real(dev_pos),
+        _real(dev_ang),
+        _real(result.get("rms_px")),
         None if n_targets is None else int(n_targets),
         _dumps(result),
     )
@@ -213,14 +231,17 @@ def _check_page(limit: int, offset: int) -> None:
 
 
 def _where(t_from: datetime | None, t_to: datetime | None, **equal: Any) -> tuple[str, list[Any]]:
-    clauses = [("t_wall >= ?", None if t_from is None else iso_utc(t_from)),
-               ("t_wall < ?", None if t_to is None else iso_utc(t_to))]
+    clauses = [
+        ("t_wall >= ?", None if t_from is None else iso_utc(t_from)),
+        ("t_wall < ?", None if t_to is None else iso_utc(t_to)),
+    ]
     clauses += [(f"{column} = ?", value) for column, value in equal.items()]  # columns: ours, never input
     used = [(c, v) for c, v in clauses if v is not None]
     return (" WHERE " + " AND ".join(c for c, _ in used)) if used else "", [v for _, v in used]
 
 
 # ---------------------------------------------------------------- the store
+
 
 class MeasurementStore:
     """Measurements and events in one SQLite file; one writer thread, any number of readers.
@@ -279,8 +300,9 @@ class MeasurementStore:
         self._stop_deadline = math.inf
         self._thread: threading.Thread | None = None
         self._own_events: list[tuple[Any, ...]] = []  # the writer's error events, written with the next batch
-        self._counts = dict.fromkeys(("written", "events_written", "batches", "dropped", "events_dropped",
-                                      "abandoned", "retention_deleted"), 0)
+        self._counts = dict.fromkeys(
+            ("written", "events_written", "batches", "dropped", "events_dropped", "abandoned", "retention_deleted"), 0
+        )
         self._last_error: str | None = None
         self._last_error_t_wall: str | None = None
         self._failing_since: float | None = None  # monotonic s of the first failed commit of the current outage
@@ -293,16 +315,20 @@ class MeasurementStore:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
         except OSError as e:
-            raise StorageError(f"the measurement database {self.path} cannot be created ({e.strerror}): "
-                               f"check that {self.path.parent} is writable by the service user") from e
+            raise StorageError(
+                f"the measurement database {self.path} cannot be created ({e.strerror}): "
+                f"check that {self.path.parent} is writable by the service user"
+            ) from e
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as e:
             os.close(fd)
             if not isinstance(e, BlockingIOError):
                 raise StorageError(f"cannot lock {lock_path} ({e.strerror}): put the database on a local disk") from e
-            raise StorageError(f"the measurement database {self.path} is already open for writing by another "
-                               f"store or process (lock {lock_path}): run one posecell service per database") from None
+            raise StorageError(
+                f"the measurement database {self.path} is already open for writing by another "
+                f"store or process (lock {lock_path}): run one posecell service per database"
+            ) from None
         return fd
 
     def _release_writer_lock(self) -> None:
@@ -316,8 +342,10 @@ class MeasurementStore:
             conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=5.0)
             mode = conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
             if str(mode).lower() != "wal":
-                raise StorageError(f"the measurement database {self.path} cannot use WAL mode (journal_mode "
-                                   f"is {mode}): put it on a local file system")
+                raise StorageError(
+                    f"the measurement database {self.path} cannot use WAL mode (journal_mode "
+                    f"is {mode}): put it on a local file system"
+                )
             self._configure_write_connection(conn)
             self._migrate(conn)
             conn.execute(f"PRAGMA busy_timeout={int(_BUSY_TIMEOUT_S * 1000)}")  # opening may wait longer
@@ -328,11 +356,13 @@ class MeasurementStore:
             if isinstance(e, sqlite3.OperationalError):  # unable to open, read-only, I/O error
                 raise StorageError(
                     f"the measurement database {self.path} cannot be opened for writing ({e}): check that it "
-                    f"and {self.path.parent} are writable by the service user and the disk works") from e
+                    f"and {self.path.parent} are writable by the service user and the disk works"
+                ) from e
             if isinstance(e, sqlite3.Error):  # "file is not a database", "database disk image is malformed"
                 raise StorageError(
                     f"the measurement database {self.path} is not a SQLite database or is damaged ({e}): move "
-                    "it aside (keep it if it holds history you need) and the service starts a new one") from e
+                    "it aside (keep it if it holds history you need) and the service starts a new one"
+                ) from e
             raise
 
     def _configure_write_connection(self, conn: sqlite3.Connection) -> None:
@@ -343,13 +373,19 @@ class MeasurementStore:
     def _migrate(self, conn: sqlite3.Connection) -> None:
         version = conn.execute("PRAGMA user_version").fetchone()[0]
         if version > SCHEMA_VERSION:
-            raise StorageError(f"the measurement database {self.path} has schema version {version}, newer than "
-                               f"this posecell's {SCHEMA_VERSION}: upgrade posecell or move the file aside")
-        tables = sorted(r[0] for r in conn.execute(
-            "SELECT name FROM sqlite_master WHERE type = 'table' AND name NOT LIKE 'sqlite_%'"))
+            raise StorageError(
+                f"the measurement database {self.path} has schema version {version}, newer than "
+                f"this posecell's {SCHEMA_VERSION}: upgrade posecell or move the file aside"
+            )
+        tables = sorted(
+            r[0]
+            for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table' AND name NOT LIKE 'sqlite_%'")
+        )
         if version == 0 and tables:
-            raise StorageError(f"the measurement database {self.path} is a SQLite database but not posecell's "
-                               f"(tables {', '.join(tables)}, no schema version): move it aside or choose another path")
+            raise StorageError(
+                f"the measurement database {self.path} is a SQLite database but not posecell's "
+                f"(tables {', '.join(tables)}, no schema version): move it aside or choose another path"
+            )
         for v in range(version, SCHEMA_VERSION):
             conn.execute("BEGIN IMMEDIATE")
             try:
@@ -433,15 +469,16 @@ class MeasurementStore:
                 raise StorageError(f"the measurement store {self.path} is closed")
             if len(self._pending) >= self.max_queue:
                 self._counts["dropped"] += 1
-                raise StoreFull(f"{len(self._pending)} rows are waiting to be written to {self.path}; this "
-                                f"measurement is not stored (last error: {self._last_error})")
+                raise StoreFull(
+                    f"{len(self._pending)} rows are waiting to be written to {self.path}; this "
+                    f"measurement is not stored (last error: {self._last_error})"
+                )
             seq = self._next_seq
             self._next_seq += 1
             self._enqueue((seq, "m", row))
         return seq
 
-    def add_event(self, kind: str, message: str, level: str = "info",
-                  details: Mapping[str, Any] | None = None) -> None:
+    def add_event(self, kind: str, message: str, level: str = "info", details: Mapping[str, Any] | None = None) -> None:
         """Queue one event (``level``: debug, info, warning or error); a full queue counts and logs it."""
         row = _event_row(kind, message, level, details)
         with self._cond:
@@ -499,9 +536,13 @@ class MeasurementStore:
                     return []
                 self._cond.wait(remaining)
             deadline = time.monotonic() + self.flush_interval_s
-            while (self._pending and len(self._pending) < self.batch_max and not self._stopping
-                   and self._flush_upto <= self._written_seq
-                   and (remaining := deadline - time.monotonic()) > 0):
+            while (
+                self._pending
+                and len(self._pending) < self.batch_max
+                and not self._stopping
+                and self._flush_upto <= self._written_seq
+                and (remaining := deadline - time.monotonic()) > 0
+            ):
                 self._cond.wait(remaining)
             n = min(self.batch_max, len(self._pending))
             self._inflight = n
@@ -528,9 +569,14 @@ class MeasurementStore:
         while True:
             own_events = list(self._own_events)
             if attempts:  # committed with the rows, so it is stored exactly when writing works again
-                own_events.append(_event_row(
-                    "storage_recovered", "writing to the measurement database works again", "warning",
-                    {"failed_attempts": attempts, "outage_s": round(time.monotonic() - t_fail, 3)}))
+                own_events.append(
+                    _event_row(
+                        "storage_recovered",
+                        "writing to the measurement database works again",
+                        "warning",
+                        {"failed_attempts": attempts, "outage_s": round(time.monotonic() - t_fail, 3)},
+                    )
+                )
             try:
                 self._write_batch(conn, batch, own_events)
                 break
@@ -542,9 +588,14 @@ class MeasurementStore:
                     with self._cond:
                         self._failing_since = t_fail
                     log.error("writing %d rows to %s failed (%s); retrying", len(batch), self.path, e)
-                    self._own_events.append(_event_row(
-                        "storage_error", f"writing to the measurement database failed: {e}", "error",
-                        {"error": str(e), "rows_waiting": len(batch) + len(self._pending)}))
+                    self._own_events.append(
+                        _event_row(
+                            "storage_error",
+                            f"writing to the measurement database failed: {e}",
+                            "error",
+                            {"error": str(e), "rows_waiting": len(batch) + len(self._pending)},
+                        )
+                    )
                 with self._cond:
                     if self._stopping and time.monotonic() >= self._stop_deadline:
                         lost = len(batch) + len(self._pending)
@@ -578,7 +629,9 @@ class MeasurementStore:
                     for _ in range(_RETENTION_MAX_CHUNKS):
                         n = conn.execute(
                             f"DELETE FROM {table} WHERE id IN (SELECT id FROM {table} WHERE t_wall < ? "
-                            f"ORDER BY t_wall LIMIT {_RETENTION_CHUNK})", (cutoff,)).rowcount
+                            f"ORDER BY t_wall LIMIT {_RETENTION_CHUNK})",
+                            (cutoff,),
+                        ).rowcount
                         deleted += n
                         if n < _RETENTION_CHUNK:
                             break
@@ -607,9 +660,17 @@ class MeasurementStore:
         except sqlite3.Error as e:
             raise StorageError(f"cannot read the measurement database {self.path}: {e}") from e
 
-    def measurements(self, t_from: datetime | None = None, t_to: datetime | None = None, limit: int = 1000,
-                     offset: int = 0, ok: bool | None = None, camera: str | None = None, *,
-                     oldest_first: bool = False) -> list[dict[str, Any]]:
+    def measurements(
+        self,
+        t_from: datetime | None = None,
+        t_to: datetime | None = None,
+        limit: int = 1000,
+        offset: int = 0,
+        ok: bool | None = None,
+        camera: str | None = None,
+        *,
+        oldest_first: bool = False,
+    ) -> list[dict[str, Any]]:
         """Measurements with ``t_from <= t_wall < t_to``, newest first unless ``oldest_first``.
 
         Each row has the columns of CSV_COLUMNS but ``message`` (``ok`` a bool) and ``result``, the
@@ -618,29 +679,48 @@ class MeasurementStore:
         _check_page(limit, offset)
         where, params = _where(t_from, t_to, ok=None if ok is None else int(bool(ok)), camera=camera)
         order = "ASC" if oldest_first else "DESC"
-        rows = self._select(f"SELECT {', '.join(_ROW_COLUMNS)}, result FROM measurements{where} "
-                            f"ORDER BY t_wall {order}, id {order} LIMIT ? OFFSET ?", [*params, limit, offset])
+        rows = self._select(
+            f"SELECT {', '.join(_ROW_COLUMNS)}, result FROM measurements{where} "
+            f"ORDER BY t_wall {order}, id {order} LIMIT ? OFFSET ?",
+            [*params, limit, offset],
+        )
         for r in rows:
             r["ok"], r["result"] = bool(r["ok"]), json.loads(r["result"])
         return rows
 
-    def count(self, t_from: datetime | None = None, t_to: datetime | None = None,
-              ok: bool | None = None, camera: str | None = None) -> int:
+    def count(
+        self,
+        t_from: datetime | None = None,
+        t_to: datetime | None = None,
+        ok: bool | None = None,
+        camera: str | None = None,
+    ) -> int:
         """Number of measurements matching the filters of :meth:`measurements`."""
         where, params = _where(t_from, t_to, ok=None if ok is None else int(bool(ok)), camera=camera)
         return int(self._select(f"SELECT count(*) AS n FROM measurements{where}", params)[0]["n"])
 
-    def events(self, t_from: datetime | None = None, t_to: datetime | None = None, limit: int = 1000,
-               offset: int = 0, level: str | None = None, kind: str | None = None, *,
-               oldest_first: bool = False) -> list[dict[str, Any]]:
+    def events(
+        self,
+        t_from: datetime | None = None,
+        t_to: datetime | None = None,
+        limit: int = 1000,
+        offset: int = 0,
+        level: str | None = None,
+        kind: str | None = None,
+        *,
+        oldest_first: bool = False,
+    ) -> list[dict[str, Any]]:
         """Events (id, t_wall, level, kind, message, details dict or None), newest first by default."""
         _check_page(limit, offset)
         if level is not None and level not in EVENT_LEVELS:
             raise ValueError(f"event level {level!r} is not one of {', '.join(EVENT_LEVELS)}")
         where, params = _where(t_from, t_to, level=level, kind=kind)
         order = "ASC" if oldest_first else "DESC"
-        rows = self._select(f"SELECT id, t_wall, level, kind, message, details FROM events{where} "
-                            f"ORDER BY t_wall {order}, id {order} LIMIT ? OFFSET ?", [*params, limit, offset])
+        rows = self._select(
+            f"SELECT id, t_wall, level, kind, message, details FROM events{where} "
+            f"ORDER BY t_wall {order}, id {order} LIMIT ? OFFSET ?",
+            [*params, limit, offset],
+        )
         for r in rows:
             r["details"] = None if r["details"] is None else json.loads(r["details"])
         return rows
@@ -666,21 +746,32 @@ class MeasurementStore:
         if thread is not None and not thread.is_alive():
             return "degraded", f"the storage writer for {self.path} has stopped (see the log); nothing is stored"
         if failing_since is not None:
-            return "degraded", (f"writing to the measurement database has failed for "
-                                f"{time.monotonic() - failing_since:.1f} s ({self._last_error}); {queued} rows "
-                                "wait and are retried")
+            return "degraded", (
+                f"writing to the measurement database has failed for "
+                f"{time.monotonic() - failing_since:.1f} s ({self._last_error}); {queued} rows "
+                "wait and are retried"
+            )
         return "ok", ""
 
     def stats(self) -> dict[str, Any]:
         """Counters since open (queued, written, dropped, ...), database size, state and the last write error."""
         state, error = self.health()
         with self._cond:
-            out: dict[str, Any] = {"state": state, "error": error, "queued": len(self._pending) + self._inflight,
-                                   "last_written_seq": self._written_seq, **self._counts}
+            out: dict[str, Any] = {
+                "state": state,
+                "error": error,
+                "queued": len(self._pending) + self._inflight,
+                "last_written_seq": self._written_seq,
+                **self._counts,
+            }
         size = 0
         for suffix in ("", "-wal"):
             with contextlib.suppress(OSError):
                 size += os.path.getsize(f"{self.path}{suffix}")
-        out.update(db_size_bytes=size, synchronous=self.synchronous,
-                   last_error=self._last_error, last_error_t_wall=self._last_error_t_wall)
+        out.update(
+            db_size_bytes=size,
+            synchronous=self.synchronous,
+            last_error=self._last_error,
+            last_error_t_wall=self._last_error_t_wall,
+        )
         return out

@@ -107,12 +107,10 @@ class SheetOptions:
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be non-negative, got {v}")
         if self.n_coded < 0 or self.n_uncoded < 0 or self.n_coded + self.n_uncoded < 1:
-            raise ValueError(
-                f"need at least one target, got {self.n_coded} coded and {self.n_uncoded} uncoded")
+            raise ValueError(f"need at least one target, got {self.n_coded} coded and {self.n_uncoded} uncoded")
         last = self.first_code + self.n_coded - 1
         if self.n_coded and not (1 <= self.first_code and last <= n_codes()):
-            raise ValueError(
-                f"codes {self.first_code}..{last} are outside the family 1..{n_codes()}")
+            raise ValueError(f"codes {self.first_code}..{last} are outside the family 1..{n_codes()}")
         if not 0 <= self.jitter_fraction < 0.5:
             raise ValueError(f"jitter_fraction must lie in [0, 0.5), got {self.jitter_fraction}")
 
@@ -123,8 +121,9 @@ def _grid_shape(n: int, aspect: float) -> tuple[int, int]:
     return nx, max(1, math.ceil(n / nx))
 
 
-def _slot_grid(n: int, n_coded: int, span_x: float, span_y: float
-               ) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int]]:
+def _slot_grid(
+    n: int, n_coded: int, span_x: float, span_y: float
+) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int]]:
     """Slots (nx, ny), coded sub-grid (kx, ky) and block size (sx, sy) with nx = kx*sx, ny = ky*sy.
 
     The smallest grid of at least ``n`` slots whose pitch is nearly the same
@@ -174,8 +173,9 @@ def _layout(o: SheetOptions) -> tuple[Array, NDArray[np.bool_]]:
     x0, x1 = o.margin_mm + r_max, o.width_mm - o.margin_mm - r_max
     y0, y1 = o.margin_mm + r_max, o.height_mm - o.margin_mm - r_max
     if x1 < x0 or y1 < y0:
-        raise ValueError(f"a {o.width_mm} x {o.height_mm} mm sheet with {o.margin_mm} mm margins "
-                         "has no room for targets")
+        raise ValueError(
+            f"a {o.width_mm} x {o.height_mm} mm sheet with {o.margin_mm} mm margins has no room for targets"
+        )
     n = o.n_coded + o.n_uncoded
     span_x, span_y = x1 - x0, y1 - y0
     coded_slot_shape = _slot_grid(n, o.n_coded, span_x, span_y)
@@ -186,8 +186,7 @@ def _layout(o: SheetOptions) -> tuple[Array, NDArray[np.bool_]]:
     coded_slot = np.zeros((ny, nx), dtype=bool)
     if o.n_coded:
         # One coded target in the middle slot of each sx x sy block: a regular sub-grid.
-        rr, cc = np.meshgrid(sy // 2 + sy * np.arange(ky), sx // 2 + sx * np.arange(kx),
-                             indexing="ij")
+        rr, cc = np.meshgrid(sy // 2 + sy * np.arange(ky), sx // 2 + sx * np.arange(kx), indexing="ij")
         coded_slot[rr.ravel()[: o.n_coded], cc.ravel()[: o.n_coded]] = True
     coded_xy = np.array([(xs[c], ys[r]) for r in range(ny) for c in range(nx) if coded_slot[r, c]])
     free = [(r, c) for r in range(ny) for c in range(nx) if not coded_slot[r, c]]
@@ -211,8 +210,7 @@ def _layout(o: SheetOptions) -> tuple[Array, NDArray[np.bool_]]:
     return xy, is_coded
 
 
-def _jitter(xy: Array, is_coded: NDArray[np.bool_], outer: Array, o: SheetOptions,
-            pitch: tuple[float, float]) -> Array:
+def _jitter(xy: Array, is_coded: NDArray[np.bool_], outer: Array, o: SheetOptions, pitch: tuple[float, float]) -> Array:
     """Move each uncoded target by up to ``jitter_fraction`` of the pitch, keeping the clearance."""
     rng = np.random.default_rng(o.seed)
     out = xy.copy()
@@ -283,8 +281,7 @@ def _field_from_layout(o: SheetOptions, xy_svg: Array, is_coded: NDArray[np.bool
     codes[is_coded] = o.first_code + np.arange(int(is_coded.sum()))
     ids = [f"C{c}" for c in codes[is_coded]] + [f"P{k + 1}" for k in range(int((~is_coded).sum()))]
     diameters = np.where(is_coded, o.coded_diameter_mm, o.uncoded_diameter_mm)
-    return Field(name=o.name, ids=tuple(ids), xyz=xyz, codes=codes.astype(np.int64),
-                 diameters_mm=diameters)
+    return Field(name=o.name, ids=tuple(ids), xyz=xyz, codes=codes.astype(np.int64), diameters_mm=diameters)
 
 
 def make_sheet(options: SheetOptions | None = None) -> tuple[str, Field]:
@@ -336,8 +333,7 @@ def make_sheet(options: SheetOptions | None = None) -> tuple[str, Field]:
     return "\n".join(out) + "\n", field
 
 
-def _annotations(o: SheetOptions, field: Field, xy: Array,
-                 is_coded: NDArray[np.bool_]) -> list[str]:
+def _annotations(o: SheetOptions, field: Field, xy: Array, is_coded: NDArray[np.bool_]) -> list[str]:
     """Title, coded-target labels and the ruler, in grey, clear of every ring."""
     W, H, m = o.width_mm, o.height_mm, o.margin_mm
     font = max(2.0, min(10.0, 0.3 * m))
@@ -345,31 +341,34 @@ def _annotations(o: SheetOptions, field: Field, xy: Array,
     if m >= 8.0:
         n_c = int(is_coded.sum())
         codes = f"codes {o.first_code}..{o.first_code + n_c - 1}, " if n_c else ""
-        text = (f"{o.title}  |  {_f(W)} x {_f(H)} mm  |  {n_c} coded ({codes}ring "
-                f"{RING_INNER:g}-{RING_OUTER:g} R) + {len(field) - n_c} uncoded  |  origin: sheet "
-                "centre, x right, y up, z out  |  print at 100 %")
-        out.append(f'<text x="{_f(m)}" y="{_f(0.6 * m)}" font-size="{_f(font)}">'
-                   f"{escape(text)}</text>")
+        text = (
+            f"{o.title}  |  {_f(W)} x {_f(H)} mm  |  {n_c} coded ({codes}ring "
+            f"{RING_INNER:g}-{RING_OUTER:g} R) + {len(field) - n_c} uncoded  |  origin: sheet "
+            "centre, x right, y up, z out  |  print at 100 %"
+        )
+        out.append(f'<text x="{_f(m)}" y="{_f(0.6 * m)}" font-size="{_f(font)}">{escape(text)}</text>')
         (ax, ay), (bx, by) = _ruler_ends(o)
         length = _ruler_length(o)
         tick = 0.15 * m
-        out.append(f'<rect id="ruler" x="{_f(ax)}" y="{_f(ay - 0.2)}" width="{_f(length)}" '
-                   'height="0.4"/>')
+        out.append(f'<rect id="ruler" x="{_f(ax)}" y="{_f(ay - 0.2)}" width="{_f(length)}" height="0.4"/>')
         # Ticks every 10 mm (centred on their positions), longer every 50 and 100 mm.
         n_ticks = max(1, round(length / 10.0))
         for k in range(n_ticks + 1):
             h = tick if k % 10 == 0 else (0.6 * tick if k % 5 == 0 else 0.35 * tick)
             x = ax + k * length / n_ticks
             out.append(f'<rect x="{_f(x - 0.2)}" y="{_f(ay - h)}" width="0.4" height="{_f(h)}"/>')
-        out.append(f'<text x="{_f(bx + 3)}" y="{_f(ay)}" font-size="{_f(0.6 * font)}">'
-                   f"{_f(length)} mm from the first to the last tick</text>")
+        out.append(
+            f'<text x="{_f(bx + 3)}" y="{_f(ay)}" font-size="{_f(0.6 * font)}">'
+            f"{_f(length)} mm from the first to the last tick</text>"
+        )
     if o.labels:
         size = 0.8 * o.coded_diameter_mm / 2
         for i in np.flatnonzero(is_coded):
             cx, cy = xy[i]
             y = cy + RING_OUTER * o.coded_diameter_mm / 2 + 0.5 * o.clearance_mm + 0.35 * size
-            out.append(f'<text x="{_f(cx)}" y="{_f(y)}" font-size="{_f(size)}" '
-                       f'text-anchor="middle">{field.ids[i]}</text>')
+            out.append(
+                f'<text x="{_f(cx)}" y="{_f(y)}" font-size="{_f(size)}" text-anchor="middle">{field.ids[i]}</text>'
+            )
     out.append("</g>")
     return out
 
@@ -396,8 +395,11 @@ def scale_bars(field: Field) -> list[dict[str, Any]]:
         if lo != hi and (lo, hi) not in pairs:
             pairs.append((lo, hi))
     return [
-        {"from": field.ids[rows[a]], "to": field.ids[rows[b]],
-         "length_mm": round(float(np.linalg.norm(field.xyz[rows[a]] - field.xyz[rows[b]])), 6)}
+        {
+            "from": field.ids[rows[a]],
+            "to": field.ids[rows[b]],
+            "length_mm": round(float(np.linalg.norm(field.xyz[rows[a]] - field.xyz[rows[b]])), 6),
+        }
         for a, b in pairs
     ]
 
@@ -417,11 +419,20 @@ def field_json_of_sheet(field: Field, options: SheetOptions | None = None) -> di
         "name": data["name"],
         "frame": FRAME_DESCRIPTION,
         "sheet": {"width_mm": W, "height_mm": H, "title": options.title},
-        "coded_ring": {"inner_radius_over_disk_radius": RING_INNER,
-                       "outer_radius_over_disk_radius": RING_OUTER, "sectors": N_BITS},
+        "coded_ring": {
+            "inner_radius_over_disk_radius": RING_INNER,
+            "outer_radius_over_disk_radius": RING_OUTER,
+            "sectors": N_BITS,
+        },
         "scale_bars": scale_bars(field),
-        "rulers": [{"xyz_from": [round(ax - W / 2, 6), round(H / 2 - ay, 6), 0.0],
-                    "xyz_to": [round(bx - W / 2, 6), round(H / 2 - by, 6), 0.0],
-                    "length_mm": _ruler_length(options)}] if options.margin_mm >= 8.0 else [],
+        "rulers": [
+            {
+                "xyz_from": [round(ax - W / 2, 6), round(H / 2 - ay, 6), 0.0],
+                "xyz_to": [round(bx - W / 2, 6), round(H / 2 - by, 6), 0.0],
+                "length_mm": _ruler_length(options),
+            }
+        ]
+        if options.margin_mm >= 8.0
+        else [],
         "targets": data["targets"],
     }

@@ -95,8 +95,17 @@ class Worker:
         self.latest_frame: dict[str, tuple[Frame, dict[str, Any]]] = {}
         self._latency_ms: deque[float] = deque(maxlen=200)
         self._processing_ms: deque[float] = deque(maxlen=200)
-        self.counters = {"results": 0, "ok": 0, "failed": 0, "roi": 0, "full": 0, "stored": 0, "triggered": 0,
-                         "not_stored": 0, "outage_results": 0}
+        self.counters = {
+            "results": 0,
+            "ok": 0,
+            "failed": 0,
+            "roi": 0,
+            "full": 0,
+            "stored": 0,
+            "triggered": 0,
+            "not_stored": 0,
+            "outage_results": 0,
+        }
         self._last_stored_ns = 0
         self._threads: list[threading.Thread] = []
         self.started_ns = time.monotonic_ns()
@@ -266,9 +275,11 @@ class Worker:
         if self.store.wait_written(answer.stored_seq, max(0.0, timeout_s)):
             return True, ""
         _, why = self.store.health()
-        return False, (f"the measurement was not committed to the database within {timeout_s:.1f} s"
-                       f"{f': {why}' if why else ''}; it is not acknowledged (it is kept queued and written "
-                       "when the database accepts writes again)")
+        return False, (
+            f"the measurement was not committed to the database within {timeout_s:.1f} s"
+            f"{f': {why}' if why else ''}; it is not acknowledged (it is kept queued and written "
+            "when the database accepts writes again)"
+        )
 
     def _camera_unavailable(self, name: str) -> dict[str, Any] | None:
         ch = self.cameras.get(name)
@@ -304,8 +315,10 @@ class Worker:
         else:
             target, what = self.robot, "robot"
         if not callable(getattr(target, action, None)):
-            raise LookupError(f"the {what} is not simulated in this process (sim.transport = "
-                              f"{self.settings.sim.transport!r}): faults are injected into the direct simulated cell")
+            raise LookupError(
+                f"the {what} is not simulated in this process (sim.transport = "
+                f"{self.settings.sim.transport!r}): faults are injected into the direct simulated cell"
+            )
         getattr(target, action)()
         self.event("warning" if action != "plug" else "info", "sim_fault", f"simulated fault: {what} {action}")
         return f"{what}: {action}"
@@ -403,8 +416,11 @@ class Worker:
             subscribers = list(self._subscribers)
             # a request for "any camera" is answered by the rig's result when a rig is calibrated
             answers_any = name == (RIG if self._rig_active() else name)
-            waiting = [w for w in self._waiters
-                       if (w[0] == name or (w[0] is None and answers_any)) and (frame is None or t_data >= w[1])]
+            waiting = [
+                w
+                for w in self._waiters
+                if (w[0] == name or (w[0] is None and answers_any)) and (frame is None or t_data >= w[1])
+            ]
             self._waiters = [w for w in self._waiters if w not in waiting]
         answer = Answer(result)
         if frame is not None and (waiting or self._due_for_storage(frame)):
@@ -461,8 +477,12 @@ class Worker:
             return out
         outage = self._camera_outage(name) if name in self.processors else None
         why = f": {outage[1]}" if outage else ""
-        out.update(ok=False, reason=str(Reason.stale), stale=True,
-                   message=f"the newest result of {name} is {age_s:.1f} s old, no longer current{why}")
+        out.update(
+            ok=False,
+            reason=str(Reason.stale),
+            stale=True,
+            message=f"the newest result of {name} is {age_s:.1f} s old, no longer current{why}",
+        )
         if result.get("reason"):
             out["measured_reason"] = result["reason"]
         return out
@@ -479,8 +499,11 @@ class Worker:
         if self.robot is not None:
             robot.update(driver=self.robot.info.driver, rate_hz=self.robot.info.rate_hz)
         states = [c["state"] for c in cams.values()]
-        problems = [f"camera {n}: {c.get('error') or c['state']}" for n, c in cams.items()
-                    if c["state"] not in ("ok", "starting")]
+        problems = [
+            f"camera {n}: {c.get('error') or c['state']}"
+            for n, c in cams.items()
+            if c["state"] not in ("ok", "starting")
+        ]
         if self.robot_state is not DeviceState.absent:
             states.append(robot["state"])
             if self.robot_state not in (DeviceState.ok, DeviceState.starting):
@@ -494,8 +517,7 @@ class Worker:
             status = "initializing"
         elif all(s == "ok" for s in states):
             status = "ok"
-        elif (not problems and any(s == "starting" for s in states)
-              and (time.monotonic_ns() - self.started_ns) < 30e9):
+        elif not problems and any(s == "starting" for s in states) and (time.monotonic_ns() - self.started_ns) < 30e9:
             status = "initializing"
         else:
             status = "degraded"

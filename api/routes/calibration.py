@@ -41,10 +41,13 @@ def get_calibration(kind: Kind, worker: WorkerDep) -> Any:
         raise ApiError(Reason.not_calibrated, f"no {kind} calibration is loaded", status=404) from None
 
 
-@router.put("/{kind}", dependencies=[Authorized],
-            summary="Upload a calibration; the worker uses it from the next frame")
+@router.put(
+    "/{kind}", dependencies=[Authorized], summary="Upload a calibration; the worker uses it from the next frame"
+)
 def put_calibration(
-    kind: Kind, worker: WorkerDep, data: Annotated[dict[str, Any], Body()],
+    kind: Kind,
+    worker: WorkerDep,
+    data: Annotated[dict[str, Any], Body()],
     note: Annotated[str, Query(max_length=1000, description="kept with the version, at most 1000 characters")] = "",
 ) -> dict[str, Any]:
     try:

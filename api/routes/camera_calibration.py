@@ -65,8 +65,10 @@ def solve(worker: WorkerDep, req: SolveRequest | None = None, apply: bool = Fals
     if unknown:
         raise ApiError(Reason.bad_input, f"unknown parameters {unknown}; choose from {list(PARAMETER_NAMES)}")
     if req.images is not None:
-        images = [ImagePoints(im.name, tuple(p.id for p in im.points), np.array([p.uv for p in im.points]))
-                  for im in req.images]
+        images = [
+            ImagePoints(im.name, tuple(p.id for p in im.points), np.array([p.uv for p in im.points]))
+            for im in req.images
+        ]
     else:
         session = getattr(worker, "handeye_session", None)
         if session is None or not session.samples:
@@ -90,5 +92,10 @@ def solve(worker: WorkerDep, req: SolveRequest | None = None, apply: bool = Fals
         except FormatError as e:  # a result outside the physical limits is not stored
             raise ApiError(Reason.bad_input, f"the self-calibration is not applied: {e}") from None
         worker.event("info", "calibration_changed", f"camera version {version} from a self-calibration")
-    return {"ok": True, "applied_version": version, "sigma0_px": result.sigma0_px,
-            "warnings": list(result.warnings), "camera": payload}
+    return {
+        "ok": True,
+        "applied_version": version,
+        "sigma0_px": result.sigma0_px,
+        "warnings": list(result.warnings),
+        "camera": payload,
+    }

@@ -37,7 +37,10 @@ class _Patch(BaseModel):
 
 
 def _patch_of(
-    model: type[BaseModel], name: str, *, exclude: frozenset[str] = frozenset(),
+    model: type[BaseModel],
+    name: str,
+    *,
+    exclude: frozenset[str] = frozenset(),
     replace: dict[str, Any] | None = None,
 ) -> type[_Patch]:
     """``model`` with every field optional (``None``: unchanged), keeping its limits and descriptions."""
@@ -54,8 +57,9 @@ def _patch_of(
 
 StrobePatch = _patch_of(StrobeConfig, "StrobePatch")
 # name and driver pick the device: the configuration file's business, not a run-time change
-CameraPatch = _patch_of(CameraConfig, "CameraPatch", exclude=frozenset({"name", "driver", "options"}),
-                        replace={"strobe": StrobePatch})
+CameraPatch = _patch_of(
+    CameraConfig, "CameraPatch", exclude=frozenset({"name", "driver", "options"}), replace={"strobe": StrobePatch}
+)
 # the rig's pairing window is set when the worker starts
 ProcessingPatch = _patch_of(ProcessingConfig, "ProcessingPatch", exclude=frozenset({"rig_sync_tolerance_s"}))
 
@@ -88,7 +92,8 @@ def put_config(request: Request, worker: WorkerDep, patch: ConfigPatch) -> dict[
         processing = None
         if patch.processing is not None:
             processing = ProcessingConfig.model_validate(
-                {**settings.processing.model_dump(), **patch.processing.model_dump(exclude_unset=True)})
+                {**settings.processing.model_dump(), **patch.processing.model_dump(exclude_unset=True)}
+            )
     except ValidationError as e:
         raise ApiError(Reason.bad_input, f"invalid configuration: {validation_problems(e)}") from None
     for name, cfg in new_cameras.items():

@@ -24,7 +24,8 @@ MAX_OFFSET = 1_000_000_000  # rows; far above any retention, far below SQLite's 
 def _aware(t: datetime) -> datetime:
     if t.tzinfo is None:
         raise PydanticCustomError(
-            "timezone_missing", "the time has no time zone: add Z (UTC) or an offset such as +01:00")
+            "timezone_missing", "the time has no time zone: add Z (UTC) or an offset such as +01:00"
+        )
     try:
         t.astimezone(UTC)  # what the store does with it
     except OverflowError:
@@ -51,8 +52,11 @@ def get_measurements(
 ) -> Any:
     rows = store.measurements(t_from=t_from, t_to=t_to, limit=limit, offset=offset, ok=ok, camera=camera)
     if format == "csv":
-        return Response(store.export_csv(rows), media_type="text/csv",
-                        headers={"Content-Disposition": 'attachment; filename="measurements.csv"'})
+        return Response(
+            store.export_csv(rows),
+            media_type="text/csv",
+            headers={"Content-Disposition": 'attachment; filename="measurements.csv"'},
+        )
     return {"count": len(rows), "measurements": rows}
 
 

@@ -1,13 +1,13 @@
 """The guided hand-eye calibration over the API (see ``service/handeye_session.py`` for the steps).
 
-    POST   /calibration/handeye/session            plan: proposed flange poses around the field
-    GET    /calibration/handeye/session            proposals, samples, motion quality, result
-    POST   /calibration/handeye/session/move/{k}   simulated cell only: move the arm to proposal k
-    POST   /calibration/handeye/session/samples    record a sample at the robot's current (resting) pose
-    DELETE /calibration/handeye/session/samples/{k}
-    POST   /calibration/handeye/session/solve      solve X and Z; ?apply=true stores and uses the result
-    GET    /calibration/handeye/session/export     samples for `posecell calibrate handeye --samples`
-    DELETE /calibration/handeye/session
+POST   /calibration/handeye/session            plan: proposed flange poses around the field
+GET    /calibration/handeye/session            proposals, samples, motion quality, result
+POST   /calibration/handeye/session/move/{k}   simulated cell only: move the arm to proposal k
+POST   /calibration/handeye/session/samples    record a sample at the robot's current (resting) pose
+DELETE /calibration/handeye/session/samples/{k}
+POST   /calibration/handeye/session/solve      solve X and Z; ?apply=true stores and uses the result
+GET    /calibration/handeye/session/export     samples for `posecell calibrate handeye --samples`
+DELETE /calibration/handeye/session
 """
 
 from __future__ import annotations
@@ -27,9 +27,17 @@ from service.solver_process import SolverCrashed
 
 router = APIRouter(prefix="/calibration/handeye/session", tags=["hand-eye calibration"])
 
-_STATUS = {"robot_moving": 409, "not_solved": 409, "not_found": 404, Reason.poor_motion: 422,
-           Reason.degenerate_geometry: 422, Reason.too_few_targets: 409, Reason.not_calibrated: 409,
-           Reason.robot_disconnected: 503, Reason.camera_disconnected: 503}
+_STATUS = {
+    "robot_moving": 409,
+    "not_solved": 409,
+    "not_found": 404,
+    Reason.poor_motion: 422,
+    Reason.degenerate_geometry: 422,
+    Reason.too_few_targets: 409,
+    Reason.not_calibrated: 409,
+    Reason.robot_disconnected: 503,
+    Reason.camera_disconnected: 503,
+}
 
 
 def _err(e: SessionError) -> ApiError:
@@ -82,8 +90,12 @@ def move(index: int, worker: WorkerDep) -> dict[str, Any]:
         raise ApiError("not_found", f"no proposal #{index}; there are {len(s.proposals)}")
     move_to = getattr(worker.robot, "move_to", None)
     if move_to is None:
-        raise ApiError("unsupported", "this robot is moved by its own program: send it to the proposed "
-                       "T_base_flange (ur_pose_m_rotvec for UR), then record a sample", status=409)
+        raise ApiError(
+            "unsupported",
+            "this robot is moved by its own program: send it to the proposed "
+            "T_base_flange (ur_pose_m_rotvec for UR), then record a sample",
+            status=409,
+        )
     try:
         duration_s = move_to(s.proposals[index])
     except SolveError as e:

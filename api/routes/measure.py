@@ -36,9 +36,11 @@ def _camera(worker: Any, camera: str | None) -> None:
         raise ApiError("not_found", f"no camera named {camera!r}; cameras: {sorted(worker.processors)}")
 
 
-@router.post("/measure", dependencies=[Authorized],
-             summary="One measurement of the next frame exposed after the request "
-             "(software-triggered if so configured)")
+@router.post(
+    "/measure",
+    dependencies=[Authorized],
+    summary="One measurement of the next frame exposed after the request (software-triggered if so configured)",
+)
 async def post_measure(worker: WorkerDep, request: MeasureRequest | None = None) -> Any:
     """The result of DESIGN section 4. ``"ok": false`` with a ``reason`` when the frame gave no pose
     (HTTP 200), or when no frame could be measured (503 camera_disconnected, 409 not_calibrated,
@@ -59,14 +61,26 @@ async def post_measure(worker: WorkerDep, request: MeasureRequest | None = None)
         return JSONResponse(result, status_code=_STATUS[result["reason"]])
     stored, why = await asyncio.to_thread(worker.wait_stored, answer, deadline - time.monotonic())
     if not stored:
-        raise ApiError(Reason.storage_unavailable, why, status=_STATUS[Reason.storage_unavailable],
-                       camera=result.get("camera"), t_exposure_host_ns=result.get("t_exposure_host_ns"))
+        raise ApiError(
+            Reason.storage_unavailable,
+            why,
+            status=_STATUS[Reason.storage_unavailable],
+            camera=result.get("camera"),
+            t_exposure_host_ns=result.get("t_exposure_host_ns"),
+        )
     return {**result, "measurement_id": answer.stored_seq}
 
 
-@router.get("/poses/latest", summary="The newest result (of one camera, or the newest of all), with its age",
-            responses={503: {"description": "no current result: the camera is down (camera_disconnected) or the "
-                             "newest result is older than a few frame periods (stale; its values are kept)"}})
+@router.get(
+    "/poses/latest",
+    summary="The newest result (of one camera, or the newest of all), with its age",
+    responses={
+        503: {
+            "description": "no current result: the camera is down (camera_disconnected) or the "
+            "newest result is older than a few frame periods (stale; its values are kept)"
+        }
+    },
+)
 def get_latest(worker: WorkerDep, camera: str | None = None) -> Any:
     _camera(worker, camera)
     result = worker.current(camera)
@@ -77,8 +91,12 @@ def get_latest(worker: WorkerDep, camera: str | None = None) -> Any:
     return result
 
 
-@router.get("/frames/latest", response_class=Response, summary="The newest frame with its measured targets drawn",
-            responses={200: {"content": {"image/png": {}, "image/jpeg": {}}}})
+@router.get(
+    "/frames/latest",
+    response_class=Response,
+    summary="The newest frame with its measured targets drawn",
+    responses={200: {"content": {"image/png": {}, "image/jpeg": {}}}},
+)
 def get_frame(
     worker: WorkerDep,
     camera: str | None = None,

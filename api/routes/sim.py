@@ -25,7 +25,8 @@ class FaultRequest(BaseModel):
     device: Literal["camera", "robot"]
     action: Literal["unplug", "plug", "stall", "garble"] = Field(
         description="unplug: the link drops; plug: the device is back, every fault ends; stall (camera): "
-        "connected but no frames; garble (camera): frames of noise")
+        "connected but no frames; garble (camera): frames of noise"
+    )
     camera: str | None = Field(None, max_length=100, description="which camera (default: the first)")
 
 

@@ -79,8 +79,12 @@ _NAME_BY_CODE = {code: name for name, (code, _) in _PIXEL_FORMATS.items()}
 
 _DEVICE_ERROR = "arv-device-error-quark"
 _GC_ERROR = "arv-gc-error-quark"
-_LINK_ERRORS = {int(Aravis.DeviceError.TIMEOUT), int(Aravis.DeviceError.NOT_CONNECTED),
-                int(Aravis.DeviceError.TRANSFER_ERROR), int(Aravis.DeviceError.NOT_CONTROLLER)}
+_LINK_ERRORS = {
+    int(Aravis.DeviceError.TIMEOUT),
+    int(Aravis.DeviceError.NOT_CONNECTED),
+    int(Aravis.DeviceError.TRANSFER_ERROR),
+    int(Aravis.DeviceError.NOT_CONTROLLER),
+}
 # PyGObject hands buffer data out as an immutable bytes copy; ctypes copies it once into a writable array
 _lib = ctypes.CDLL("libaravis-0.8.so.0")  # the library gi loaded (same soname, same handle)
 _lib.arv_buffer_get_image_data.restype = ctypes.c_void_p
@@ -196,11 +200,13 @@ class AravisCamera:
         if node is None:
             raise FeatureUnsupported(name, f"the camera {self._model()} has no {name}")
         d = self._device
-        for kind, getter in ((Aravis.GcEnumeration, d.get_string_feature_value),
-                             (Aravis.GcBoolean, d.get_boolean_feature_value),
-                             (Aravis.GcFloat, d.get_float_feature_value),
-                             (Aravis.GcInteger, d.get_integer_feature_value),
-                             (Aravis.GcString, d.get_string_feature_value)):
+        for kind, getter in (
+            (Aravis.GcEnumeration, d.get_string_feature_value),
+            (Aravis.GcBoolean, d.get_boolean_feature_value),
+            (Aravis.GcFloat, d.get_float_feature_value),
+            (Aravis.GcInteger, d.get_integer_feature_value),
+            (Aravis.GcString, d.get_string_feature_value),
+        ):
             if isinstance(node, kind):
                 value: bool | int | float | str = self._call(lambda g=getter: g(name), f"read {name}", name)
                 return value
@@ -292,7 +298,8 @@ class AravisCamera:
             where = f"at {self.device!r}" if self.device else "on any interface"
             raise DriverInitError(
                 f"no GigE Vision or USB3 Vision camera answers {where} ({e.message}); check the address, "
-                "the cable and that no other program holds the camera") from e
+                "the cable and that no other program holds the camera"
+            ) from e
         device = camera.get_device()
         if camera.is_gv_device() and not device.is_controller():
             raise DriverInitError(f"the camera {self.device!r} is controlled by another program or host")
@@ -316,8 +323,9 @@ class AravisCamera:
             self._call(lambda: camera.gv_set_packet_size(int(self.packet_size)), "set the packet size")
             self._device.set_packet_size_adjustment(Aravis.GvPacketSizeAdjustment.NEVER)
         if isinstance(self._device, Aravis.GvDevice):  # the option is read when the stream is created
-            self._device.set_stream_options(Aravis.GvStreamOption.NONE if self.packet_socket
-                                            else Aravis.GvStreamOption.PACKET_SOCKET_DISABLED)
+            self._device.set_stream_options(
+                Aravis.GvStreamOption.NONE if self.packet_socket else Aravis.GvStreamOption.PACKET_SOCKET_DISABLED
+            )
         # Aravis starts the stream's receiving thread here: it inherits this thread's priority
         with thread_nice(_STREAM_THREAD_NICE):
             stream = self._call(lambda: camera.create_stream(None, None), "create a stream")
@@ -352,8 +360,9 @@ class AravisCamera:
         if wait_s > 0:
             time.sleep(min(wait_s, max(0.0, budget_s)))
             if wait_s > budget_s:
-                raise DriverDisconnected(f"the camera {self._name()} is lost; reconnecting every "
-                                         f"{self.reconnect_interval_s:g} s")
+                raise DriverDisconnected(
+                    f"the camera {self._name()} is lost; reconnecting every {self.reconnect_interval_s:g} s"
+                )
         self._last_attempt_s = time.monotonic()
         try:
             self._connect()
@@ -421,8 +430,10 @@ class AravisCamera:
             code = buffer.get_image_pixel_format()
             dtype = _DTYPE_BY_CODE.get(code)
             if dtype is None:
-                raise DriverError(f"the camera {self._name()} sent pixel format 0x{code:08x}; posecell reads "
-                                  f"{', '.join(_PIXEL_FORMATS)} only")
+                raise DriverError(
+                    f"the camera {self._name()} sent pixel format 0x{code:08x}; posecell reads "
+                    f"{', '.join(_PIXEL_FORMATS)} only"
+                )
             x_padding, _ = buffer.get_image_padding()
             seq, t_device_ns = buffer.get_frame_id(), buffer.get_timestamp()
             t_system_ns = buffer.get_system_timestamp()
@@ -441,8 +452,12 @@ class AravisCamera:
             t_host_ns=t_pop_ns if stepped else arrival_ns(t_pop_ns, int(t_system_ns), real_minus_mono_ns),
             t_device_ns=int(t_device_ns) if t_device_ns else None,
             exposure_us=self._exposure_us,
-            meta={"system_timestamp_ns": int(t_system_ns), "t_popped_ns": t_pop_ns,
-                  "failed_buffers": dict(self._failed), "pixel_format": _NAME_BY_CODE[code]},
+            meta={
+                "system_timestamp_ns": int(t_system_ns),
+                "t_popped_ns": t_pop_ns,
+                "failed_buffers": dict(self._failed),
+                "pixel_format": _NAME_BY_CODE[code],
+            },
         )
 
     @staticmethod
@@ -468,8 +483,9 @@ class AravisCamera:
         model = self._model()
         if s.pixel_format is not None:
             if s.pixel_format not in _PIXEL_FORMATS:
-                raise FeatureUnsupported("PixelFormat", f"posecell reads {', '.join(_PIXEL_FORMATS)}, "
-                                                        f"not {s.pixel_format}")
+                raise FeatureUnsupported(
+                    "PixelFormat", f"posecell reads {', '.join(_PIXEL_FORMATS)}, not {s.pixel_format}"
+                )
             self._need_entry("PixelFormat", s.pixel_format, "pixel format")
         if s.roi is not None:
             x, y, w, h = s.roi
@@ -497,8 +513,10 @@ class AravisCamera:
             self._check_strobe(s.strobe)
 
     def _check_strobe(self, st: StrobeSettings) -> None:
-        why = (f"the ring light cannot be strobed from its line {st.line} (use a camera with SFNC digital I/O, "
-               "or set strobe.enabled = false)")
+        why = (
+            f"the ring light cannot be strobed from its line {st.line} (use a camera with SFNC digital I/O, "
+            "or set strobe.enabled = false)"
+        )
         for name in ("LineSelector", "LineMode", "LineSource"):
             self._need(name, why)
         self._need_entry("LineSelector", st.line, "I/O line", why)
@@ -537,8 +555,9 @@ class AravisCamera:
             if self._has("Gain"):
                 self._set("Gain", float(s.gain_db))
             else:
-                log.warning("camera %s has GainRaw only (device units, not dB); writing %d", self._model(),
-                            round(s.gain_db))
+                log.warning(
+                    "camera %s has GainRaw only (device units, not dB); writing %d", self._model(), round(s.gain_db)
+                )
                 self._set("GainRaw", round(s.gain_db))
         self._apply_trigger(s)
         if s.strobe is not None:
@@ -592,8 +611,11 @@ class AravisCamera:
                 self._set("TimerDelay", float(st.delay_us))
             self._set("TimerTriggerSource", "ExposureStart")
         elif st.delay_us or st.duration_us is not None:
-            log.warning("camera %s: strobe delay/duration apply to timer sources only; %s follows the exposure",
-                        self._model(), st.source)
+            log.warning(
+                "camera %s: strobe delay/duration apply to timer sources only; %s follows the exposure",
+                self._model(),
+                st.source,
+            )
         self._set("LineSelector", st.line)  # timer nodes may share selectors on some cameras: select again
         self._set("LineSource", st.source)
         if self._has("LineInverter"):
@@ -617,8 +639,11 @@ class AravisCamera:
         self._need(name, consequence)
         entries = self._entries(name)
         if entry not in entries:
-            raise FeatureUnsupported(name, f"the camera {self._model()} has no {what} {entry} "
-                                           f"(it offers {', '.join(entries) or 'none'}); {consequence}")
+            raise FeatureUnsupported(
+                name,
+                f"the camera {self._model()} has no {what} {entry} "
+                f"(it offers {', '.join(entries) or 'none'}); {consequence}",
+            )
 
     def _first(self, what: str, *names: str) -> str:
         for name in names:
@@ -627,14 +652,26 @@ class AravisCamera:
         raise FeatureUnsupported(names[0], f"the camera {self._model()} has no {what} ({' or '.join(names)})")
 
     def _entries(self, name: str) -> list[str]:
-        return list(self._call(lambda: self._device.dup_available_enumeration_feature_values_as_strings(name),
-                               f"read the entries of {name}", name) or [])
+        return list(
+            self._call(
+                lambda: self._device.dup_available_enumeration_feature_values_as_strings(name),
+                f"read the entries of {name}",
+                name,
+            )
+            or []
+        )
 
     def _set(self, name: str, value: bool | int | float | str) -> None:
         d = self._device
-        setter = (d.set_boolean_feature_value if isinstance(value, bool) else
-                  d.set_integer_feature_value if isinstance(value, int) else
-                  d.set_float_feature_value if isinstance(value, float) else d.set_string_feature_value)
+        setter = (
+            d.set_boolean_feature_value
+            if isinstance(value, bool)
+            else d.set_integer_feature_value
+            if isinstance(value, int)
+            else d.set_float_feature_value
+            if isinstance(value, float)
+            else d.set_string_feature_value
+        )
         self._call(lambda: setter(name, value), f"set {name} to {value}", name)
 
     def _set_if_entry(self, name: str, entry: str) -> None:
@@ -651,14 +688,16 @@ class AravisCamera:
         except GLib.Error as e:
             if e.domain == _DEVICE_ERROR and e.code in _LINK_ERRORS:
                 self._lost.set()
-                raise DriverDisconnected(f"the camera {self._name()} did not answer while trying to {what} "
-                                         f"({e.message})") from e
+                raise DriverDisconnected(
+                    f"the camera {self._name()} did not answer while trying to {what} ({e.message})"
+                ) from e
             if feature is not None and (
                 (e.domain == _DEVICE_ERROR and e.code == int(Aravis.DeviceError.FEATURE_NOT_FOUND))
                 or (e.domain == _GC_ERROR and e.code == int(Aravis.GcError.ENUM_ENTRY_NOT_FOUND))
             ):
-                raise FeatureUnsupported(feature, f"the camera {self._model()} has no {feature} "
-                                                  f"(trying to {what})") from e
+                raise FeatureUnsupported(
+                    feature, f"the camera {self._model()} has no {feature} (trying to {what})"
+                ) from e
             raise DriverError(f"the camera {self._name()} refused to {what}: {e.message}") from e
 
     def _read_exposure(self) -> float:
@@ -683,8 +722,13 @@ class AravisCamera:
             serial=self._call(camera.get_device_serial_number, "read the serial number") or "",
             width=self._get_int("Width"),
             height=self._get_int("Height"),
-            pixel_format=str(self._call(lambda: self._device.get_string_feature_value("PixelFormat"),
-                                        "read PixelFormat", "PixelFormat")) if has("PixelFormat") else "",
+            pixel_format=str(
+                self._call(
+                    lambda: self._device.get_string_feature_value("PixelFormat"), "read PixelFormat", "PixelFormat"
+                )
+            )
+            if has("PixelFormat")
+            else "",
             features=tuple(name for name, present in features if present),
         )
 

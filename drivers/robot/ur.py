@@ -112,8 +112,9 @@ def _child_main(host: str, frequency_hz: float, conn: Connection, reconnect_inte
             pass
 
 
-def _child_loop(rtde_receive: Any, host: str, frequency_hz: float, conn: Connection,
-                reconnect_interval_s: float) -> None:
+def _child_loop(
+    rtde_receive: Any, host: str, frequency_hz: float, conn: Connection, reconnect_interval_s: float
+) -> None:
     period_s = 1.0 / frequency_hz
     poll_s = min(period_s / 2, _MAX_POLL_PERIOD_S)
     stale_s = max(0.2, 20 * period_s)
@@ -189,9 +190,17 @@ class URRobot:
     connect_timeout_s : a connection attempt that hangs longer restarts the child process.
     """
 
-    def __init__(self, host: str, port: int = RTDE_PORT, frequency_hz: float = 500.0,
-                 T_flange_tcp: Any = None, history_s: float = 10.0, reconnect_interval_s: float = 1.0,
-                 open_timeout_s: float = 5.0, connect_timeout_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        host: str,
+        port: int = RTDE_PORT,
+        frequency_hz: float = 500.0,
+        T_flange_tcp: Any = None,
+        history_s: float = 10.0,
+        reconnect_interval_s: float = 1.0,
+        open_timeout_s: float = 5.0,
+        connect_timeout_s: float = 5.0,
+    ) -> None:
         if port != RTDE_PORT:
             raise ValueError(f"ur_rtde's receive interface always connects to port {RTDE_PORT}, not {port}")
         if not 0.0 < frequency_hz <= 500.0:
@@ -226,9 +235,13 @@ class URRobot:
 
     @property
     def info(self) -> RobotInfo:
-        return RobotInfo(driver="ur", model="Universal Robots (RTDE)", address=self.address,
-                         rate_hz=self.frequency_hz,
-                         T_flange_tcp=tuple(tuple(float(v) for v in row) for row in self.T_flange_tcp))
+        return RobotInfo(
+            driver="ur",
+            model="Universal Robots (RTDE)",
+            address=self.address,
+            rate_hz=self.frequency_hz,
+            T_flange_tcp=tuple(tuple(float(v) for v in row) for row in self.T_flange_tcp),
+        )
 
     @property
     def history(self) -> RobotHistory:
@@ -296,8 +309,10 @@ class URRobot:
             raise DriverDisconnected(f"no robot sample from the UR controller at {self.address} yet ({reason})")
         age_s = (now_ns - sample.t_host_ns) * 1e-9
         if not up:
-            raise DriverDisconnected(f"the RTDE link to the UR controller at {self.address} is down ({reason}); "
-                                     f"last sample {age_s:.1f} s ago; reconnecting")
+            raise DriverDisconnected(
+                f"the RTDE link to the UR controller at {self.address} is down ({reason}); "
+                f"last sample {age_s:.1f} s ago; reconnecting"
+            )
         if age_s > STALE_AFTER_S:
             raise DriverDisconnected(f"the UR controller at {self.address} sent nothing for {age_s:.1f} s")
         return sample
@@ -311,8 +326,12 @@ class URRobot:
     def _spawn_child(self) -> None:
         ctx = multiprocessing.get_context("spawn")
         recv_end, send_end = ctx.Pipe(duplex=False)
-        proc = ctx.Process(target=_child_main, name=f"ur-rtde-{self.host}",
-                           args=(self.host, self.frequency_hz, send_end, self.reconnect_interval_s), daemon=True)
+        proc = ctx.Process(
+            target=_child_main,
+            name=f"ur-rtde-{self.host}",
+            args=(self.host, self.frequency_hz, send_end, self.reconnect_interval_s),
+            daemon=True,
+        )
         proc.start()
         send_end.close()  # the child holds the only writer, so its death shows as EOF here
         with self._child_lock:
@@ -412,8 +431,9 @@ class URRobot:
 
     def _on_sample(self, t_host_ns: int, t_robot_s: float, pose: tuple[float, ...], q: tuple[float, ...]) -> None:
         T_base_flange = T_from_ur_pose(pose) @ self._T_tcp_flange
-        self._history.append(RobotSample(T_base_flange=T_base_flange, q_rad=np.array(q), t_host_ns=t_host_ns,
-                                         t_robot_s=t_robot_s))
+        self._history.append(
+            RobotSample(T_base_flange=T_base_flange, q_rad=np.array(q), t_host_ns=t_host_ns, t_robot_s=t_robot_s)
+        )
         self.stats["samples"] += 1
         self._first_sample.set()
 

@@ -103,19 +103,24 @@ _TIMER_TRIGGER_EXPOSURE_START = 1
 _STALE_AHEAD_NS = 500_000_000  # a frame rendered ahead for an exposure longer ago than this is dropped
 _RESULT_TIMEOUT_S = 5.0  # the longest a fill waits for the frame being rendered ahead for it
 
-_FillPattern = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32,
-                                ctypes.c_uint32)
+_FillPattern = ctypes.CFUNCTYPE(
+    None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint32
+)
 
 
 def _libaravis() -> ctypes.CDLL:
     lib = ctypes.CDLL("libaravis-0.8.so.0")  # CDLL: calls release the GIL, so the fake's thread can call back
     sigs: dict[str, tuple[Any, list[Any]]] = {
         "arv_fake_camera_set_fill_pattern": (None, [ctypes.c_void_p, _FillPattern, ctypes.c_void_p]),
-        "arv_fake_camera_read_register": (ctypes.c_int, [ctypes.c_void_p, ctypes.c_uint32,
-                                                          ctypes.POINTER(ctypes.c_uint32)]),
+        "arv_fake_camera_read_register": (
+            ctypes.c_int,
+            [ctypes.c_void_p, ctypes.c_uint32, ctypes.POINTER(ctypes.c_uint32)],
+        ),
         "arv_fake_camera_write_register": (ctypes.c_int, [ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32]),
-        "arv_fake_camera_write_memory": (ctypes.c_int, [ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32,
-                                                         ctypes.c_char_p]),
+        "arv_fake_camera_write_memory": (
+            ctypes.c_int,
+            [ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_char_p],
+        ),
         "arv_fake_camera_get_payload": (ctypes.c_size_t, [ctypes.c_void_p]),
         "arv_buffer_get_image_width": (ctypes.c_int, [ctypes.c_void_p]),
         "arv_buffer_get_image_height": (ctypes.c_int, [ctypes.c_void_p]),
@@ -254,13 +259,18 @@ class GvStandIn:
         if not gv.is_running():
             raise RuntimeError(
                 f"Aravis' fake camera cannot listen on {self.address}: it binds only addresses of a network "
-                "interface (127.0.0.1 on a stock host; add others with `ip addr add 127.0.0.N/8 dev lo`)")
+                "interface (127.0.0.1 on a stock host; add others with `ip addr add 127.0.0.N/8 dev lo`)"
+            )
         if self.lost_packet_ratio:
             gv.set_property("gvsp-lost-ratio", self.lost_packet_ratio)
         fake = gv.get_fake_camera()
         ptr = _gobject_pointer(fake)
-        for address, value in ((_REG_SENSOR_WIDTH, self.width), (_REG_SENSOR_HEIGHT, self.height),
-                               (_REG_WIDTH, self.width), (_REG_HEIGHT, self.height)):
+        for address, value in (
+            (_REG_SENSOR_WIDTH, self.width),
+            (_REG_SENSOR_HEIGHT, self.height),
+            (_REG_WIDTH, self.width),
+            (_REG_HEIGHT, self.height),
+        ):
             _lib.arv_fake_camera_write_register(ptr, address, value)
         name = self.model.encode()[: _MODEL_NAME_SIZE - 1].ljust(_MODEL_NAME_SIZE, b"\0")
         _lib.arv_fake_camera_write_memory(ptr, _REG_MODEL_NAME, _MODEL_NAME_SIZE, name)
@@ -297,8 +307,9 @@ class GvStandIn:
             raise
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.close()
 
     def __repr__(self) -> str:
@@ -337,8 +348,14 @@ class GvStandIn:
             else:
                 t_start_ns, ahead = t_call_ns, False
                 sensor = self.frame_source(t_start_ns + exposure_ns // 2, lit)
-            window = self._window(np.asarray(sensor), self._register(_REG_OFFSET_X),
-                                  self._register(_REG_OFFSET_Y), width, height, pixel_format)
+            window = self._window(
+                np.asarray(sensor),
+                self._register(_REG_OFFSET_X),
+                self._register(_REG_OFFSET_Y),
+                width,
+                height,
+                pixel_format,
+            )
             ctypes.memmove(data, window.ctypes.data, min(window.nbytes, payload))
             # the device clock is the host's real-time clock; the stamp is the exposure start
             _lib.arv_buffer_set_timestamp(buffer, max(0, t_start_ns + time.time_ns() - time.monotonic_ns()))
@@ -372,8 +389,12 @@ class GvStandIn:
         pending, self._pending = self._pending, None
         if pending is not None:
             t_start_ns, p_lit, p_exposure_ns, future = pending
-            usable = (p_lit == lit and p_exposure_ns == exposure_ns and t_start_ns > self._last_start_ns
-                      and t_call_ns - t_start_ns < _STALE_AHEAD_NS)
+            usable = (
+                p_lit == lit
+                and p_exposure_ns == exposure_ns
+                and t_start_ns > self._last_start_ns
+                and t_call_ns - t_start_ns < _STALE_AHEAD_NS
+            )
             if usable:
                 try:
                     image = future.result(timeout=_RESULT_TIMEOUT_S)
@@ -409,11 +430,13 @@ class GvStandIn:
         """The ROI of ``sensor`` in the camera's pixel format, zero where the source image ends."""
         bits = (pixel_format >> 16) & 0xFF  # PFNC: bits per pixel in the code's third byte
         if sensor.ndim != 2 or bits not in (8, 16):
-            raise ValueError(f"frame_source must give a 2D image for Mono8/Mono12/Mono16, got shape "
-                             f"{sensor.shape} for pixel format 0x{pixel_format:08x}")
+            raise ValueError(
+                f"frame_source must give a 2D image for Mono8/Mono12/Mono16, got shape "
+                f"{sensor.shape} for pixel format 0x{pixel_format:08x}"
+            )
         dtype = np.dtype(np.uint8) if bits == 8 else np.dtype("<u2")
         out = np.zeros((height, width), dtype)
-        part = sensor[y0: y0 + height, x0: x0 + width]
+        part = sensor[y0 : y0 + height, x0 : x0 + width]
         h, w = part.shape
         if bits == 8:
             out[:h, :w] = np.clip(part, 0, 255) if part.dtype != np.uint8 else part
@@ -459,8 +482,9 @@ class GvStandIn:
             except BlockingIOError:
                 if time.monotonic() > deadline:
                     os.close(fd)
-                    raise RuntimeError(f"another GigE Vision stand-in has held {self.address} for "
-                                       f"{self.lock_timeout_s:.0f} s ({path})") from None
+                    raise RuntimeError(
+                        f"another GigE Vision stand-in has held {self.address} for {self.lock_timeout_s:.0f} s ({path})"
+                    ) from None
                 time.sleep(0.05)
         self._lock_fd = fd
 
@@ -477,8 +501,10 @@ class GvStandIn:
             try:
                 s.bind((self.address, _GVCP_PORT))
             except OSError as e:
-                raise RuntimeError(f"UDP port {_GVCP_PORT} on {self.address} is taken by another GigE Vision "
-                                   f"device or program ({e.strerror})") from e
+                raise RuntimeError(
+                    f"UDP port {_GVCP_PORT} on {self.address} is taken by another GigE Vision "
+                    f"device or program ({e.strerror})"
+                ) from e
 
 
 def cell_frame_source(cell: Any, t0_ns: int | None = None) -> FrameSource:
@@ -511,8 +537,13 @@ def contract_camera(address: str = "127.0.0.1", **camera_options: Any) -> Iterat
 
     camera_options.setdefault("packet_size", 8192)  # loopback: the fake's 1400-byte default loses frames
     cell = SimCell(CellConfig(program="hold"))
-    with GvStandIn(cell_frame_source(cell), address=address, serial="POSECELL-CT",
-                   width=cell.camera.width, height=cell.camera.height):
+    with GvStandIn(
+        cell_frame_source(cell),
+        address=address,
+        serial="POSECELL-CT",
+        width=cell.camera.width,
+        height=cell.camera.height,
+    ):
         camera = AravisCamera(address, **camera_options)
         try:
             yield camera

@@ -82,8 +82,16 @@ PROTOCOL_VERSION = 2
 NOT_FOUND = "NOT_FOUND"
 
 TYPE_FORMATS: dict[str, str] = {
-    "BOOL": "?", "UINT8": "B", "UINT32": "I", "UINT64": "Q", "INT32": "i", "DOUBLE": "d",
-    "VECTOR3D": "3d", "VECTOR6D": "6d", "VECTOR6INT32": "6i", "VECTOR6UINT32": "6I",
+    "BOOL": "?",
+    "UINT8": "B",
+    "UINT32": "I",
+    "UINT64": "Q",
+    "INT32": "i",
+    "DOUBLE": "d",
+    "VECTOR3D": "3d",
+    "VECTOR6D": "6d",
+    "VECTOR6INT32": "6i",
+    "VECTOR6UINT32": "6I",
 }
 _VECTOR_LEN = {"VECTOR3D": 3, "VECTOR6D": 6, "VECTOR6INT32": 6, "VECTOR6UINT32": 6}
 
@@ -95,25 +103,76 @@ def _registers(prefix: str, rtde_type: str, n: int) -> dict[str, str]:
 # The controller's output names and types (RTDE guide, e-Series 5.x).
 OUTPUT_TYPES: dict[str, str] = {
     "timestamp": "DOUBLE",
-    **{n: "VECTOR6D" for n in (
-        "target_q", "target_qd", "target_qdd", "target_current", "target_moment",
-        "actual_q", "actual_qd", "actual_current", "actual_current_window", "joint_control_output",
-        "actual_TCP_pose", "actual_TCP_speed", "actual_TCP_force", "target_TCP_pose", "target_TCP_speed",
-        "joint_temperatures", "actual_joint_voltage", "ft_raw_wrench", "payload_inertia",
-        "target_current_window", "actual_qdd")},
+    **{
+        n: "VECTOR6D"
+        for n in (
+            "target_q",
+            "target_qd",
+            "target_qdd",
+            "target_current",
+            "target_moment",
+            "actual_q",
+            "actual_qd",
+            "actual_current",
+            "actual_current_window",
+            "joint_control_output",
+            "actual_TCP_pose",
+            "actual_TCP_speed",
+            "actual_TCP_force",
+            "target_TCP_pose",
+            "target_TCP_speed",
+            "joint_temperatures",
+            "actual_joint_voltage",
+            "ft_raw_wrench",
+            "payload_inertia",
+            "target_current_window",
+            "actual_qdd",
+        )
+    },
     **{n: "VECTOR3D" for n in ("actual_tool_accelerometer", "elbow_position", "elbow_velocity", "payload_cog")},
-    **{n: "DOUBLE" for n in (
-        "actual_execution_time", "speed_scaling", "target_speed_fraction", "actual_momentum",
-        "actual_main_voltage", "actual_robot_voltage", "actual_robot_current", "standard_analog_input0",
-        "standard_analog_input1", "standard_analog_output0", "standard_analog_output1", "io_current",
-        "tool_analog_input0", "tool_analog_input1", "tool_output_current", "tool_temperature",
-        "tcp_force_scalar", "payload", "joint_position_deviation_ratio", "collision_detection_ratio",
-        "speed_scaling_combined")},
+    **{
+        n: "DOUBLE"
+        for n in (
+            "actual_execution_time",
+            "speed_scaling",
+            "target_speed_fraction",
+            "actual_momentum",
+            "actual_main_voltage",
+            "actual_robot_voltage",
+            "actual_robot_current",
+            "standard_analog_input0",
+            "standard_analog_input1",
+            "standard_analog_output0",
+            "standard_analog_output1",
+            "io_current",
+            "tool_analog_input0",
+            "tool_analog_input1",
+            "tool_output_current",
+            "tool_temperature",
+            "tcp_force_scalar",
+            "payload",
+            "joint_position_deviation_ratio",
+            "collision_detection_ratio",
+            "speed_scaling_combined",
+        )
+    },
     **{n: "INT32" for n in ("robot_mode", "safety_mode", "safety_status", "tool_output_voltage")},
-    **{n: "UINT32" for n in (
-        "robot_status_bits", "safety_status_bits", "runtime_state", "analog_io_types", "tool_mode",
-        "tool_analog_input_types", "output_bit_registers0_to_31", "output_bit_registers32_to_63",
-        "input_bit_registers0_to_31", "input_bit_registers32_to_63", "script_control_line")},
+    **{
+        n: "UINT32"
+        for n in (
+            "robot_status_bits",
+            "safety_status_bits",
+            "runtime_state",
+            "analog_io_types",
+            "tool_mode",
+            "tool_analog_input_types",
+            "output_bit_registers0_to_31",
+            "output_bit_registers32_to_63",
+            "input_bit_registers0_to_31",
+            "input_bit_registers32_to_63",
+            "script_control_line",
+        )
+    },
     **{n: "UINT64" for n in ("actual_digital_input_bits", "actual_digital_output_bits")},
     **{n: "UINT8" for n in ("tool_output_mode", "tool_digital_output0_mode", "tool_digital_output1_mode")},
     "joint_mode": "VECTOR6INT32",
@@ -126,10 +185,19 @@ OUTPUT_TYPES: dict[str, str] = {
 }
 
 INPUT_TYPES: dict[str, str] = {
-    **{n: "UINT8" for n in (
-        "standard_digital_output_mask", "standard_digital_output", "configurable_digital_output_mask",
-        "configurable_digital_output", "tool_digital_output_mask", "tool_digital_output",
-        "standard_analog_output_mask", "standard_analog_output_type")},
+    **{
+        n: "UINT8"
+        for n in (
+            "standard_digital_output_mask",
+            "standard_digital_output",
+            "configurable_digital_output_mask",
+            "configurable_digital_output",
+            "tool_digital_output_mask",
+            "tool_digital_output",
+            "standard_analog_output_mask",
+            "standard_analog_output_type",
+        )
+    },
     **{n: "DOUBLE" for n in ("standard_analog_output_0", "standard_analog_output_1", "speed_slider_fraction")},
     "speed_slider_mask": "UINT32",
     "input_bit_registers0_to_31": "UINT32",
@@ -159,7 +227,7 @@ def split_packages(buffer: bytearray) -> list[tuple[int, bytes]]:
             raise ProtocolError(f"package size {size} is smaller than the header")
         if len(buffer) < size:
             break
-        out.append((kind, bytes(buffer[HEADER.size:size])))
+        out.append((kind, bytes(buffer[HEADER.size : size])))
         del buffer[:size]
     return out
 
@@ -263,8 +331,9 @@ class RtdeSession:
     e-Series), the highest output frequency.
     """
 
-    def __init__(self, controller_version: tuple[int, int, int, int] = (5, 11, 0, 0),
-                 base_rate_hz: float = 500.0) -> None:
+    def __init__(
+        self, controller_version: tuple[int, int, int, int] = (5, 11, 0, 0), base_rate_hz: float = 500.0
+    ) -> None:
         self.controller_version = controller_version
         self.base_rate_hz = base_rate_hz
         self.protocol_version = 1
@@ -306,7 +375,7 @@ class RtdeSession:
         if kind == DATA_PACKAGE:
             return self._input_data(payload)
         if kind == TEXT_MESSAGE:
-            log.info("RTDE client says: %r", payload[1:1 + payload[0]] if payload else b"")
+            log.info("RTDE client says: %r", payload[1 : 1 + payload[0]] if payload else b"")
             return []
         name = chr(kind) if 32 <= kind < 127 else "?"
         return [text_message(f"unknown package type {name!r} (0x{kind:02x}) ignored")]
@@ -322,8 +391,14 @@ class RtdeSession:
         names = self._names(payload[8:])
         types = [OUTPUT_TYPES.get(n, NOT_FOUND) for n in names]
         reply_types = ",".join(types).encode()
-        valid = (names and NOT_FOUND not in types and not self.started and len(self.outputs) < 255
-                 and math.isfinite(frequency_hz) and 0.0 < frequency_hz <= self.base_rate_hz)
+        valid = (
+            names
+            and NOT_FOUND not in types
+            and not self.started
+            and len(self.outputs) < 255
+            and math.isfinite(frequency_hz)
+            and 0.0 < frequency_hz <= self.base_rate_hz
+        )
         if not valid:
             log.warning("output recipe refused (frequency %r Hz, types %s)", frequency_hz, types)
             return pack_package(SETUP_OUTPUTS, b"\x00" + reply_types)
@@ -392,8 +467,14 @@ class RtdeServer:
     base_rate_hz : the controller loop rate, the highest output frequency.
     """
 
-    def __init__(self, state_source: StateSource, host: str = "127.0.0.1", port: int = 30004,
-                 base_rate_hz: float = 500.0, controller_version: tuple[int, int, int, int] = (5, 11, 0, 0)) -> None:
+    def __init__(
+        self,
+        state_source: StateSource,
+        host: str = "127.0.0.1",
+        port: int = 30004,
+        base_rate_hz: float = 500.0,
+        controller_version: tuple[int, int, int, int] = (5, 11, 0, 0),
+    ) -> None:
         self.state_source = state_source
         self.host = host
         self.port = port
@@ -434,8 +515,9 @@ class RtdeServer:
         self._wake_r.setblocking(False)
         self._stop.clear()
         self.origin_ns = time.monotonic_ns()
-        self._thread = threading.Thread(target=self._run, args=(listener,), name=f"rtde-standin-{self.host}",
-                                        daemon=True)
+        self._thread = threading.Thread(
+            target=self._run, args=(listener,), name=f"rtde-standin-{self.host}", daemon=True
+        )
         self._thread.start()
         return self
 
@@ -497,8 +579,9 @@ class RtdeServer:
             sel.close()
             listener.close()
 
-    def _on_event(self, sel: selectors.BaseSelector, listener: socket.socket,
-                  key: selectors.SelectorKey, mask: int) -> None:
+    def _on_event(
+        self, sel: selectors.BaseSelector, listener: socket.socket, key: selectors.SelectorKey, mask: int
+    ) -> None:
         if key.data == "wake":
             return
         if key.data == "listen":
@@ -601,10 +684,9 @@ def T_base_flange_from_q(q_rad: Sequence[float]) -> np.ndarray:
     T = np.eye(4)
     for theta, a, d, alpha in zip(q_rad, UR5E_DH_A_MM, UR5E_DH_D_MM, UR5E_DH_ALPHA, strict=True):
         ct, st, ca, sa = math.cos(theta), math.sin(theta), math.cos(alpha), math.sin(alpha)
-        T = T @ np.array([[ct, -st * ca, st * sa, a * ct],
-                          [st, ct * ca, -ct * sa, a * st],
-                          [0.0, sa, ca, d],
-                          [0.0, 0.0, 0.0, 1.0]])
+        T = T @ np.array(
+            [[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0.0, sa, ca, d], [0.0, 0.0, 0.0, 1.0]]
+        )
     return T
 
 
@@ -645,9 +727,16 @@ class DemoArm:
         v_m_s = (T1[:3, 3] - T0[:3, 3]) / (2 * h) / 1000.0
         w_rad_s = ur_pose_from_T(T1 @ inv_T(T0))[3:] / (2 * h)  # rotation in the base frame
         qd = self.qd_rad_s(t_s)
-        return RobotState(actual_TCP_pose=tuple(pose), target_TCP_pose=tuple(pose), actual_q=tuple(q),
-                          target_q=tuple(q), actual_qd=tuple(qd), target_qd=tuple(qd),
-                          actual_TCP_speed=(*v_m_s, *w_rad_s), timestamp=t_s)
+        return RobotState(
+            actual_TCP_pose=tuple(pose),
+            target_TCP_pose=tuple(pose),
+            actual_q=tuple(q),
+            target_q=tuple(q),
+            actual_qd=tuple(qd),
+            target_qd=tuple(qd),
+            actual_TCP_speed=(*v_m_s, *w_rad_s),
+            timestamp=t_s,
+        )
 
 
 def _load_source(spec: str) -> StateSource:
@@ -665,8 +754,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--host", default="127.0.0.2")
     p.add_argument("--port", type=int, default=30004)
     p.add_argument("--state", help="state source 'module:function' taking t_s and returning a RobotState")
-    p.add_argument("--tcp-offset", nargs=6, type=float, metavar=("X", "Y", "Z", "RX", "RY", "RZ"),
-                   help="the demo arm's TCP offset as UR shows it: m and rotation vector rad")
+    p.add_argument(
+        "--tcp-offset",
+        nargs=6,
+        type=float,
+        metavar=("X", "Y", "Z", "RX", "RY", "RZ"),
+        help="the demo arm's TCP offset as UR shows it: m and rotation vector rad",
+    )
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     if args.state:

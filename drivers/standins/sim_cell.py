@@ -90,15 +90,27 @@ def _serve_camera(cell: SimCell, epoch_ns: int, host: str, serial: str, done: th
     from drivers.standins.gv_camera import GvStandIn, cell_frame_source  # needs PyGObject + Aravis
 
     sys.setswitchinterval(CAMERA_SWITCH_INTERVAL_S)
-    with GvStandIn(cell_frame_source(cell, epoch_ns), address=host, serial=serial, width=cell.camera.width,
-                   height=cell.camera.height, render_ahead=True, readout_nice=TIMING_NICE) as camera:
+    with GvStandIn(
+        cell_frame_source(cell, epoch_ns),
+        address=host,
+        serial=serial,
+        width=cell.camera.width,
+        height=cell.camera.height,
+        render_ahead=True,
+        readout_nice=TIMING_NICE,
+    ) as camera:
         log.info("GigE Vision stand-in of the simulated cell on %s", host)
         print("ready", flush=True)  # noqa: T201 -- the parent waits for this line
         while not done.wait(60.0):
             d = np.array(camera.readout_delays_s) * 1e3
             if d.size:
-                log.debug("frames %d (%d rendered ahead); readout after the exposure: min %.2f, median %.2f ms",
-                          camera.frames_served, camera.frames_rendered_ahead, d.min(), np.median(d))
+                log.debug(
+                    "frames %d (%d rendered ahead); readout after the exposure: min %.2f, median %.2f ms",
+                    camera.frames_served,
+                    camera.frames_rendered_ahead,
+                    d.min(),
+                    np.median(d),
+                )
 
 
 def _stop_at_eof(done: threading.Event) -> None:
@@ -111,8 +123,12 @@ def _stop_at_eof(done: threading.Event) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description="a stand-in of the simulated cell on loopback: its arm or its camera")
-    p.add_argument("--serve", choices=("rtde", "camera"), default="rtde",
-                   help="rtde: the arm on port 30004; camera: the GigE Vision camera")
+    p.add_argument(
+        "--serve",
+        choices=("rtde", "camera"),
+        default="rtde",
+        help="rtde: the arm on port 30004; camera: the GigE Vision camera",
+    )
     p.add_argument("--host", default="127.0.0.2", help="address to serve on (the camera: an interface's)")
     p.add_argument("--epoch-ns", type=int, required=True, help="host monotonic time of the cell's t = 0")
     p.add_argument("--cell", default="{}", help="CellConfig as JSON")

@@ -111,14 +111,20 @@ class Datum:
 
     def describe(self) -> dict[str, Any]:
         if self.control:
-            d: dict[str, Any] = {"kind": "control points", "control": list(self.control),
-                                 "control_sigma_mm": self.control_sigma_mm}
+            d: dict[str, Any] = {
+                "kind": "control points",
+                "control": list(self.control),
+                "control_sigma_mm": self.control_sigma_mm,
+            }
         else:
-            d = {"kind": "inner constraints on the nominal field",
-                 "scale": "scale bars" if self.scale_bars else "nominal field"}
+            d = {
+                "kind": "inner constraints on the nominal field",
+                "scale": "scale bars" if self.scale_bars else "nominal field",
+            }
         if self.scale_bars:
-            d["scale_bars"] = [{"ids": [b.id_a, b.id_b], "distance_mm": b.distance_mm, "sigma_mm": b.sigma_mm}
-                               for b in self.scale_bars]
+            d["scale_bars"] = [
+                {"ids": [b.id_a, b.id_b], "distance_mm": b.distance_mm, "sigma_mm": b.sigma_mm} for b in self.scale_bars
+            ]
         return d
 
 
@@ -208,13 +214,19 @@ class BundleResult:
         """The rejected observations: image name, target id, measured uv and residual, px."""
         out = []
         for k in np.flatnonzero(~self.inliers):
-            out.append({"image": self.images[self.image_index[k]].name, "id": self.ids[k],
-                        "uv": [round(float(v), 4) for v in self.uv[k]],
-                        "residual_px": [round(float(v), 4) for v in self.residuals_px[k]]})
+            out.append(
+                {
+                    "image": self.images[self.image_index[k]].name,
+                    "id": self.ids[k],
+                    "uv": [round(float(v), 4) for v in self.uv[k]],
+                    "residual_px": [round(float(v), 4) for v in self.residuals_px[k]],
+                }
+            )
         return out
 
     def report(self) -> dict[str, Any]:
         """The ``calibration`` block of ``camera.json``: quality, correlations, residuals, rejections."""
+
         def r(v: float, nd: int = 6) -> float:
             return round(float(v), nd)
 
@@ -229,21 +241,32 @@ class BundleResult:
             "n_rejected": self.n_rejected,
             "free": list(self.free),
             "fixed": [n for n in PARAMETER_NAMES if n not in self.free],
-            "correlation": {"names": list(self.free),
-                            "matrix": [[r(v, 4) for v in row] for row in self.correlation]},
+            "correlation": {"names": list(self.free), "matrix": [[r(v, 4) for v in row] for row in self.correlation]},
             "datum": self.datum,
             "outliers": "soft-L1 first pass, then iterative data snooping (chi-square, 2 dof, "
-                        "alpha 1e-5 per observation) with re-admission",
+            "alpha 1e-5 per observation) with re-admission",
             "warnings": list(self.warnings),
-            "images": [{"name": im.name, "rms_px": r(im.rms_px, 5), "n_points": im.n_points,
-                        "n_rejected": im.n_rejected,
-                        "sigma_position_mm": [r(v) for v in im.sigma_position_mm],
-                        "sigma_rotation_deg": [r(v, 8) for v in im.sigma_rotation_deg],
-                        "T_field_camera": [[r(v, 9) for v in row] for row in im.T_field_camera]}
-                       for im in self.images],
-            "targets": [{"id": tid, "n_rays": int(self.n_rays[i]), "rms_px": r(self.target_rms_px[i], 5),
-                         "sigma_mm": [r(v) for v in self.sigma_xyz_mm[i]]}
-                        for i, tid in enumerate(self.field.ids)],
+            "images": [
+                {
+                    "name": im.name,
+                    "rms_px": r(im.rms_px, 5),
+                    "n_points": im.n_points,
+                    "n_rejected": im.n_rejected,
+                    "sigma_position_mm": [r(v) for v in im.sigma_position_mm],
+                    "sigma_rotation_deg": [r(v, 8) for v in im.sigma_rotation_deg],
+                    "T_field_camera": [[r(v, 9) for v in row] for row in im.T_field_camera],
+                }
+                for im in self.images
+            ],
+            "targets": [
+                {
+                    "id": tid,
+                    "n_rays": int(self.n_rays[i]),
+                    "rms_px": r(self.target_rms_px[i], 5),
+                    "sigma_mm": [r(v) for v in self.sigma_xyz_mm[i]],
+                }
+                for i, tid in enumerate(self.field.ids)
+            ],
             "rejected": self.rejected(),
             "n_iter": self.n_iter,
             "converged": self.converged,
@@ -304,15 +327,24 @@ def _collect(field: Field, images: Sequence[ImagePoints]) -> _Network:
         image += [j] * len(q)
         point += [index[t] for t in im.ids]
         uv.append(q)
-    return _Network(ids, nominal, codes, diameters, np.array(image, dtype=np.int64),
-                    np.array(point, dtype=np.int64), np.concatenate(uv) if uv else np.zeros((0, 2)))
+    return _Network(
+        ids,
+        nominal,
+        codes,
+        diameters,
+        np.array(image, dtype=np.int64),
+        np.array(point, dtype=np.int64),
+        np.concatenate(uv) if uv else np.zeros((0, 2)),
+    )
 
 
 def _too_few_images(n: int, what: str) -> SolveError:
-    return SolveError(Reason.degenerate_geometry,
-                      f"Self-calibration needs at least {MIN_IMAGES} {what}images, got {n}: take 8 or more "
-                      f"convergent views from different sides, some rolled by 90 degrees.",
-                      {"n_images": n})
+    return SolveError(
+        Reason.degenerate_geometry,
+        f"Self-calibration needs at least {MIN_IMAGES} {what}images, got {n}: take 8 or more "
+        f"convergent views from different sides, some rolled by 90 degrees.",
+        {"n_images": n},
+    )
 
 
 # -- geometry diagnostics -------------------------------------------------------------
@@ -344,20 +376,23 @@ def network_geometry(points: Array, T_field_camera: Sequence[Array]) -> dict[str
         rolls.append(np.degrees(np.arctan2(d @ x, d @ y)))
     doubled = np.sort((2.0 * np.array(rolls)) % 360.0)  # modulo 180 deg, on a full circle
     gaps = np.diff(np.r_[doubled, doubled[:1] + 360.0]) if len(doubled) else np.array([360.0])
-    return {"flatness": float(s[2] / max(s[0], 1e-12)), "max_tilt_deg": float(tilt.max()) if len(tilt) else 0.0,
-            "roll_spread_deg": float((360.0 - gaps.max()) / 2.0)}
+    return {
+        "flatness": float(s[2] / max(s[0], 1e-12)),
+        "max_tilt_deg": float(tilt.max()) if len(tilt) else 0.0,
+        "roll_spread_deg": float((360.0 - gaps.max()) / 2.0),
+    }
 
 
 def _advice(geometry: dict[str, float]) -> str:
     why = []
     if geometry["max_tilt_deg"] < 20.0:
-        why.append(f"the views hardly converge (largest tilt from the field's normal "
-                   f"{geometry['max_tilt_deg']:.1f} deg)")
+        why.append(
+            f"the views hardly converge (largest tilt from the field's normal {geometry['max_tilt_deg']:.1f} deg)"
+        )
     if geometry["roll_spread_deg"] < MIN_ROLL_SPREAD_DEG:
         why.append(f"the images are not rolled (roll spread {geometry['roll_spread_deg']:.0f} deg)")
     reason = (", because " + " and ".join(why)) if why else ""
-    return (f"{reason}: add convergent views (tilted 20-45 deg from different sides) and views rolled "
-            f"by 90 degrees")
+    return f"{reason}: add convergent views (tilted 20-45 deg from different sides) and views rolled by 90 degrees"
 
 
 # -- the calibration -----------------------------------------------------------------------
@@ -421,8 +456,7 @@ def calibrate_camera(
     net = _collect(field, images)
     say = progress or (lambda _s: None)
     say(f"start values: resecting {len(images)} images")
-    T_init = [None if im.T_field_camera is None else np.asarray(im.T_field_camera, dtype=np.float64)
-              for im in images]
+    T_init = [None if im.T_field_camera is None else np.asarray(im.T_field_camera, dtype=np.float64) for im in images]
     views = Views(net.image, net.point, net.uv, len(images))
     T0, p0 = orient_views([camera], np.zeros(len(images), np.int64), views, net.nominal, T_init)
     oriented = np.array([T is not None for T in T0])
@@ -478,21 +512,37 @@ def calibrate_camera(
             Reason.degenerate_geometry,
             f"All images look at the planar field head-on (largest tilt {geometry['max_tilt_deg']:.1f} deg), so "
             f"the principal distance cannot be told from the distance: add convergent views tilted 20-45 deg "
-            f"from different sides, and views rolled by 90 degrees.", geometry)
+            f"from different sides, and views rolled by 90 degrees.",
+            geometry,
+        )
 
     network = NetworkInput(
-        cameras=(camera,), free_interior=(free_t,), station=station, camera=np.zeros(len(station), np.int64),
-        point=point, uv=uv, stations=stations, offsets=np.zeros((0, 6)), offsets_free=False, points=p0,
-        point_free=point_free, control=control, bars=tuple(bars), inner=inner, residual_space=residual_space,
-        sigma_px=float(sigma_px))
+        cameras=(camera,),
+        free_interior=(free_t,),
+        station=station,
+        camera=np.zeros(len(station), np.int64),
+        point=point,
+        uv=uv,
+        stations=stations,
+        offsets=np.zeros((0, 6)),
+        offsets_free=False,
+        points=p0,
+        point_free=point_free,
+        control=control,
+        bars=tuple(bars),
+        inner=inner,
+        residual_space=residual_space,
+        sigma_px=float(sigma_px),
+    )
     say(f"adjusting {len(kept_images)} images, {len(net.ids)} targets, {len(uv)} observations")
     sol = solve_network(network, reject_outliers=reject_outliers, progress=progress)
     _check_determined(sol, free_t, geometry, camera)
     return _result(sol, network, net, kept_images, free_t, datum, warnings, field.name)
 
 
-def _check_determined(sol: NetworkSolution, free_t: tuple[str, ...], geometry: dict[str, float],
-                      camera: BrownFraser) -> None:
+def _check_determined(
+    sol: NetworkSolution, free_t: tuple[str, ...], geometry: dict[str, float], camera: BrownFraser
+) -> None:
     rho = sol.global_correlation[sol.model.int_cols[0]]
     bad = [n for n, r in zip(free_t, rho, strict=True) if 1.0 - r * r < MIN_INFORMATION_FRACTION]
     cols = sol.model.int_cols[0]
@@ -509,11 +559,20 @@ def _check_determined(sol: NetworkSolution, free_t: tuple[str, ...], geometry: d
         raise SolveError(
             Reason.degenerate_geometry,
             f"The images do not determine the camera's {what}{_advice(geometry)}.",
-            {**geometry, "undetermined": bad, "weak": weak})
+            {**geometry, "undetermined": bad, "weak": weak},
+        )
 
 
-def _result(sol: NetworkSolution, network: NetworkInput, net: _Network, kept: list[ImagePoints],
-            free_t: tuple[str, ...], datum: Datum, warnings: list[str], name: str) -> BundleResult:
+def _result(
+    sol: NetworkSolution,
+    network: NetworkInput,
+    net: _Network,
+    kept: list[ImagePoints],
+    free_t: tuple[str, ...],
+    datum: Datum,
+    warnings: list[str],
+    name: str,
+) -> BundleResult:
     model, Q, s0 = sol.model, sol.Q, sol.sigma0
     cov_scale = s0 * s0
     cols = model.int_cols[0]
@@ -523,8 +582,13 @@ def _result(sol: NetworkSolution, network: NetworkInput, net: _Network, kept: li
     sigma = {n: 0.0 for n in PARAMETER_NAMES}
     sigma.update({n: float(v) for n, v in zip(free_t, sd, strict=True)})
     cam = sol.cameras[0]
-    cam = BrownFraser(**{**{k: getattr(cam, k) for k in ("width", "height", "pixel_size_mm")},
-                         **dict(zip(PARAMETER_NAMES, cam.params().tolist(), strict=True)), "sigma": sigma})
+    cam = BrownFraser(
+        **{
+            **{k: getattr(cam, k) for k in ("width", "height", "pixel_size_mm")},
+            **dict(zip(PARAMETER_NAMES, cam.params().tolist(), strict=True)),
+            "sigma": sigma,
+        }
+    )
     for a in range(len(free_t)):
         for b in range(a + 1, len(free_t)):
             if abs(corr[a, b]) > WARN_CORRELATION:
@@ -535,17 +599,26 @@ def _result(sol: NetworkSolution, network: NetworkInput, net: _Network, kept: li
     for j, im in enumerate(kept):
         m = network.station == j
         c0 = model.station_col0 + 6 * j
-        sig_rot, sig_pos = pose_sigmas(sol.stations[j], Q[c0:c0 + 6, c0:c0 + 6] * cov_scale)
+        sig_rot, sig_pos = pose_sigmas(sol.stations[j], Q[c0 : c0 + 6, c0 : c0 + 6] * cov_scale)
         mi = m & inl
         rms = float(np.sqrt(np.mean(res[mi] ** 2))) if mi.any() else float("nan")
-        images.append(ImageResult(im.name, T_field_view(sol.stations, sol.offsets, j, 0), sig_pos, sig_rot, rms,
-                                  int(m.sum()), int((m & ~inl).sum())))
+        images.append(
+            ImageResult(
+                im.name,
+                T_field_view(sol.stations, sol.offsets, j, 0),
+                sig_pos,
+                sig_rot,
+                rms,
+                int(m.sum()),
+                int((m & ~inl).sum()),
+            )
+        )
     n_pts = len(net.ids)
     sig_xyz = np.zeros((n_pts, 3))
     for i in range(n_pts):
         c = model.point_col[i]
         if c >= 0:
-            sig_xyz[i] = np.sqrt(np.clip(np.diag(Q[c:c + 3, c:c + 3]), 0.0, None)) * s0
+            sig_xyz[i] = np.sqrt(np.clip(np.diag(Q[c : c + 3, c : c + 3]), 0.0, None)) * s0
         elif network.point_free[i]:
             sig_xyz[i] = np.nan  # left out after rejections
     n_rays = np.bincount(network.point[inl], minlength=n_pts)
@@ -554,23 +627,48 @@ def _result(sol: NetworkSolution, network: NetworkInput, net: _Network, kept: li
     target_rms[n_rays == 0] = np.nan
     for i in np.flatnonzero(network.point_free & ~sol.point_used).tolist():
         warnings.append(f"target {net.ids[i]!r} kept fewer than two rays after rejections and is not adjusted")
-    refined = Field(name=name, ids=tuple(net.ids), xyz=sol.points,
-                    codes=np.array(net.codes, dtype=np.int64), diameters_mm=np.array(net.diameters))
+    refined = Field(
+        name=name,
+        ids=tuple(net.ids),
+        xyz=sol.points,
+        codes=np.array(net.codes, dtype=np.int64),
+        diameters_mm=np.array(net.diameters),
+    )
     geometry = network_geometry(sol.points[sol.point_used], [im.T_field_camera for im in images])
     if geometry["roll_spread_deg"] < MIN_ROLL_SPREAD_DEG and {"x0_mm", "y0_mm", "B1", "B2"} & set(free_t):
-        warnings.append(f"the images are hardly rolled (roll spread {geometry['roll_spread_deg']:.0f} deg): "
-                        f"the principal point and affinity are weakly determined; add views rolled by 90 degrees")
+        warnings.append(
+            f"the images are hardly rolled (roll spread {geometry['roll_spread_deg']:.0f} deg): "
+            f"the principal point and affinity are weakly determined; add views rolled by 90 degrees"
+        )
     n_rej = int(np.sum(~inl))
     if n_rej > 0.05 * len(inl):
         warnings.append(f"{n_rej} of {len(inl)} observations ({100 * n_rej / len(inl):.1f} %) were rejected")
     ids_obs = tuple(net.ids[i] for i in network.point)
     return BundleResult(
-        camera=cam, free=free_t, sigma=sigma, correlation=corr, sigma0_px=s0 * network.sigma_px,
-        redundancy=sol.redundancy, images=tuple(images), field=refined, sigma_xyz_mm=sig_xyz, n_rays=n_rays,
-        target_rms_px=target_rms, image_index=network.station.copy(), ids=ids_obs, uv=network.uv.copy(),
-        residuals_px=res, inliers=inl, warnings=tuple(warnings), datum=datum.describe(),
-        residual_space=network.residual_space, n_iter=sol.n_iter, converged=sol.converged,
-        initial_cost=sol.initial_cost, final_cost=sol.final_cost)
+        camera=cam,
+        free=free_t,
+        sigma=sigma,
+        correlation=corr,
+        sigma0_px=s0 * network.sigma_px,
+        redundancy=sol.redundancy,
+        images=tuple(images),
+        field=refined,
+        sigma_xyz_mm=sig_xyz,
+        n_rays=n_rays,
+        target_rms_px=target_rms,
+        image_index=network.station.copy(),
+        ids=ids_obs,
+        uv=network.uv.copy(),
+        residuals_px=res,
+        inliers=inl,
+        warnings=tuple(warnings),
+        datum=datum.describe(),
+        residual_space=network.residual_space,
+        n_iter=sol.n_iter,
+        converged=sol.converged,
+        initial_cost=sol.initial_cost,
+        final_cost=sol.final_cost,
+    )
 
 
 __all__ = ["BundleResult", "Datum", "ImagePoints", "ImageResult", "ScaleBar", "calibrate_camera", "network_geometry"]

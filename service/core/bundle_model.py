@@ -49,11 +49,14 @@ RESIDUAL_SPACES = ("pixel", "ideal")
 def skew3(v: Array) -> Array:
     """Cross-product matrices (..., 3, 3) of vectors (..., 3)."""
     z = np.zeros(v.shape[:-1])
-    return np.stack([
-        np.stack([z, -v[..., 2], v[..., 1]], -1),
-        np.stack([v[..., 2], z, -v[..., 0]], -1),
-        np.stack([-v[..., 1], v[..., 0], z], -1),
-    ], -2)
+    return np.stack(
+        [
+            np.stack([z, -v[..., 2], v[..., 1]], -1),
+            np.stack([v[..., 2], z, -v[..., 0]], -1),
+            np.stack([-v[..., 1], v[..., 0], z], -1),
+        ],
+        -2,
+    )
 
 
 def left_jacobian(w: Array) -> Array:
@@ -159,16 +162,28 @@ class BundleModel:
     extra : ExtraRows
     """
 
-    def __init__(self, cameras: Sequence[BrownFraser], free_interior: Sequence[Sequence[str]], station: IntArray,
-                 camera: IntArray, point: IntArray, uv: Array, n_stations: int, point_free: NDArray[np.bool_],
-                 offsets_free: bool, points_fixed: Array, offsets_fixed: Array, residual_space: str,
-                 sigma_px: float, extra: ExtraRows) -> None:
+    def __init__(
+        self,
+        cameras: Sequence[BrownFraser],
+        free_interior: Sequence[Sequence[str]],
+        station: IntArray,
+        camera: IntArray,
+        point: IntArray,
+        uv: Array,
+        n_stations: int,
+        point_free: NDArray[np.bool_],
+        offsets_free: bool,
+        points_fixed: Array,
+        offsets_fixed: Array,
+        residual_space: str,
+        sigma_px: float,
+        extra: ExtraRows,
+    ) -> None:
         if residual_space not in RESIDUAL_SPACES:
             raise ValueError(f"residual_space must be one of {RESIDUAL_SPACES}, got {residual_space!r}")
         self.cameras = tuple(cameras)
         self.n_cam = len(self.cameras)
-        self.free_idx = [np.array([PARAMETER_NAMES.index(n) for n in names], dtype=np.int64)
-                         for names in free_interior]
+        self.free_idx = [np.array([PARAMETER_NAMES.index(n) for n in names], dtype=np.int64) for names in free_interior]
         self.station = np.asarray(station, dtype=np.int64)
         self.cam = np.asarray(camera, dtype=np.int64)
         self.point = np.asarray(point, dtype=np.int64)
@@ -200,10 +215,17 @@ class BundleModel:
         col += 3 * int(self.point_free.sum())
         self.n_params = col
         self.by_cam = [np.flatnonzero(self.cam == k) for k in range(self.n_cam)]
-        self.inner_C = (inner_constraint_matrix(extra.inner[1], extra.inner[2]) * extra.inner[3]
-                        if extra.inner is not None else None)
-        self.n_rows = 2 * self.n_obs + 3 * len(extra.control) + len(extra.bars) + (
-            0 if self.inner_C is None else len(self.inner_C))
+        self.inner_C = (
+            inner_constraint_matrix(extra.inner[1], extra.inner[2]) * extra.inner[3]
+            if extra.inner is not None
+            else None
+        )
+        self.n_rows = (
+            2 * self.n_obs
+            + 3 * len(extra.control)
+            + len(extra.bars)
+            + (0 if self.inner_C is None else len(self.inner_C))
+        )
         self._structure()
         self._cache_x: Array | None = None
         self._cache: tuple[Array, Array | None] | None = None
@@ -215,9 +237,9 @@ class BundleModel:
         x = np.empty(self.n_params)
         for k, cam in enumerate(cameras):
             x[self.int_cols[k]] = cam.params()[self.free_idx[k]]
-        x[self.station_col0:self.station_col0 + 6 * self.n_stations] = np.asarray(stations).ravel()
+        x[self.station_col0 : self.station_col0 + 6 * self.n_stations] = np.asarray(stations).ravel()
         if self.offsets_free:
-            x[self.offset_col0:self.offset_col0 + 6 * (self.n_cam - 1)] = np.asarray(offsets).ravel()
+            x[self.offset_col0 : self.offset_col0 + 6 * (self.n_cam - 1)] = np.asarray(offsets).ravel()
         free = self.point_free
         cols = self.point_col[free][:, None] + np.arange(3)
         x[cols.ravel()] = np.asarray(points)[free].ravel()
@@ -231,9 +253,12 @@ class BundleModel:
             if v[0] <= 0:  # a trial step may propose c <= 0; keep the model defined, the cost says no
                 v[0] = 1e-6
             cams.append(cam.with_params(v))
-        stations = x[self.station_col0:self.station_col0 + 6 * self.n_stations].reshape(-1, 6)
-        offsets = (x[self.offset_col0:self.offset_col0 + 6 * (self.n_cam - 1)].reshape(-1, 6)
-                   if self.offsets_free else self._fixed_offsets)
+        stations = x[self.station_col0 : self.station_col0 + 6 * self.n_stations].reshape(-1, 6)
+        offsets = (
+            x[self.offset_col0 : self.offset_col0 + 6 * (self.n_cam - 1)].reshape(-1, 6)
+            if self.offsets_free
+            else self._fixed_offsets
+        )
         points = self._fixed_points.copy()
         free = self.point_free
         points[free] = x[(self.point_col[free][:, None] + np.arange(3)).ravel()].reshape(-1, 3)
@@ -281,15 +306,17 @@ class BundleModel:
             rows.append(np.repeat(r0 + np.arange(n_g), len(c)))
             cols.append(np.tile(c, n_g))
         rows_a, cols_a = np.concatenate(rows), np.concatenate(cols)
-        probe = sp.csr_matrix((np.arange(1, len(rows_a) + 1, dtype=np.float64), (rows_a, cols_a)),
-                              shape=(self.n_rows, self.n_params))
+        probe = sp.csr_matrix(
+            (np.arange(1, len(rows_a) + 1, dtype=np.float64), (rows_a, cols_a)), shape=(self.n_rows, self.n_params)
+        )
         probe.sort_indices()
         self._perm = probe.data.astype(np.int64) - 1
         self._indices, self._indptr = probe.indices.copy(), probe.indptr.copy()
 
     def sparsity(self) -> sp.csr_matrix:
-        return sp.csr_matrix((np.ones(len(self._perm)), self._indices, self._indptr),
-                             shape=(self.n_rows, self.n_params))
+        return sp.csr_matrix(
+            (np.ones(len(self._perm)), self._indices, self._indptr), shape=(self.n_rows, self.n_params)
+        )
 
     # -- evaluation ----------------------------------------------------------------
 
@@ -304,7 +331,7 @@ class BundleModel:
 
     def image_residuals_px(self, x: Array) -> Array:
         """Measured minus predicted, (M, 2) px (ideal space: ideal residuals over the pixel size)."""
-        return -self.residuals(x)[:2 * self.n_obs].reshape(-1, 2) * self.sigma_px
+        return -self.residuals(x)[: 2 * self.n_obs].reshape(-1, 2) * self.sigma_px
 
     def camera_frame_points(self, x: Array) -> Array:
         """Each observation's point in its camera's frame, (M, 3) mm."""
@@ -323,8 +350,11 @@ class BundleModel:
         return pc, q, Rso, Rko, P
 
     def _evaluate(self, x: Array, jacobian: bool) -> tuple[Array, Array | None]:
-        if self._cache_x is not None and np.array_equal(x, self._cache_x) and (
-                not jacobian or (self._cache is not None and self._cache[1] is not None)):
+        if (
+            self._cache_x is not None
+            and np.array_equal(x, self._cache_x)
+            and (not jacobian or (self._cache is not None and self._cache[1] is not None))
+        ):
             assert self._cache is not None
             return self._cache
         cams, stations, offsets, points = self.unpack(x)
@@ -369,10 +399,10 @@ class BundleModel:
                 xy = cam.sensor_from_pixel(self.uv[m])
                 D = correction_parameter_jacobian(xy[:, 0] - cam.x0_mm, xy[:, 1] - cam.y0_mm)
                 dint[m, :, 3:] = -D * scale[None, :, None]
-        f[:2 * M] = fi.ravel()
+        f[: 2 * M] = fi.ravel()
         r0 = 2 * M
         for i, xyz, sig in self.extra.control:
-            f[r0:r0 + 3] = (points[i] - xyz) / sig
+            f[r0 : r0 + 3] = (points[i] - xyz) / sig
             r0 += 3
         for a, b, d, sig in self.extra.bars:
             f[r0] = (np.linalg.norm(points[a] - points[b]) - d) / sig

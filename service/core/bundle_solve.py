@@ -116,8 +116,14 @@ class Views:
     n_views: int
 
 
-def orient_views(cameras: Sequence[BrownFraser], view_camera: IntArray, views: Views, points: Array,
-                 T_field_view: list[Array | None], min_points: int = 4) -> tuple[list[Array | None], Array]:
+def orient_views(
+    cameras: Sequence[BrownFraser],
+    view_camera: IntArray,
+    views: Views,
+    points: Array,
+    T_field_view: list[Array | None],
+    min_points: int = 4,
+) -> tuple[list[Array | None], Array]:
     """Start poses of the images and start coordinates of the points.
 
     ``points`` (N, 3) with NaN rows for unknown points; ``T_field_view`` the known
@@ -219,8 +225,9 @@ class NetworkSolution:
     converged: bool
 
 
-def _model(net: NetworkInput, inliers: NDArray[np.bool_], point_free: NDArray[np.bool_], x_parts: tuple,
-           weight: float) -> BundleModel:
+def _model(
+    net: NetworkInput, inliers: NDArray[np.bool_], point_free: NDArray[np.bool_], x_parts: tuple, weight: float
+) -> BundleModel:
     cams, stations, offsets, points = x_parts
     control = tuple((i, xyz, s) for i, (xyz, s) in sorted(net.control.items()) if s > 0 and point_free[i])
     bars = tuple(b for b in net.bars if point_free[b[0]] or point_free[b[1]])
@@ -229,9 +236,22 @@ def _model(net: NetworkInput, inliers: NDArray[np.bool_], point_free: NDArray[np
         keep = point_free[net.inner[0]]
         inner = (net.inner[0][keep], net.inner[1][keep], net.inner[2], weight)
     m = np.flatnonzero(inliers)
-    return BundleModel(cams, net.free_interior, net.station[m], net.camera[m], net.point[m], net.uv[m],
-                       len(stations), point_free, net.offsets_free, points, offsets, net.residual_space,
-                       net.sigma_px, ExtraRows(control=control, bars=bars, inner=inner))
+    return BundleModel(
+        cams,
+        net.free_interior,
+        net.station[m],
+        net.camera[m],
+        net.point[m],
+        net.uv[m],
+        len(stations),
+        point_free,
+        net.offsets_free,
+        points,
+        offsets,
+        net.residual_space,
+        net.sigma_px,
+        ExtraRows(control=control, bars=bars, inner=inner),
+    )
 
 
 def _free_points(net: NetworkInput, inliers: NDArray[np.bool_]) -> NDArray[np.bool_]:
@@ -241,8 +261,9 @@ def _free_points(net: NetworkInput, inliers: NDArray[np.bool_]) -> NDArray[np.bo
     return net.point_free & ((rays >= 2) | controlled)
 
 
-def _solve(model: BundleModel, x0: Array, loss: str, f_scale: float, progress: Progress | None,
-           stage: str, near: bool = False) -> tuple[Array, int, bool]:
+def _solve(
+    model: BundleModel, x0: Array, loss: str, f_scale: float, progress: Progress | None, stage: str, near: bool = False
+) -> tuple[Array, int, bool]:
     """``least_squares`` to a coarse tolerance, then (plain least squares) Gauss-Newton steps on the
     normal equations to full precision; ``near``: the start is already close (Gauss-Newton only).
 
@@ -250,10 +271,13 @@ def _solve(model: BundleModel, x0: Array, loss: str, f_scale: float, progress: P
     directions of the interior orientation, so near the minimum it crawls; the normal equations
     are factorized for the covariance anyway, and Gauss-Newton on them converges in 1-3 steps.
     """
+
     def report(intermediate_result: object) -> None:
         if progress is not None:
-            progress(f"{stage}: iteration {getattr(intermediate_result, 'nit', '?')}, "
-                     f"cost {float(getattr(intermediate_result, 'cost', np.nan)):.6g}")
+            progress(
+                f"{stage}: iteration {getattr(intermediate_result, 'nit', '?')}, "
+                f"cost {float(getattr(intermediate_result, 'cost', np.nan)):.6g}"
+            )
 
     if model.n_rows * model.n_params**2 < DENSE_BELOW:
         jac, tr_solver = (lambda x: model.jacobian(x).toarray()), "exact"
@@ -262,9 +286,21 @@ def _solve(model: BundleModel, x0: Array, loss: str, f_scale: float, progress: P
     if near and loss == "linear":
         x, nfev, converged = np.asarray(x0, dtype=np.float64), 0, False
     else:
-        sol = least_squares(model.residuals, x0, jac=jac, method="trf", tr_solver=tr_solver,
-                            x_scale="jac", loss=loss, f_scale=f_scale, ftol=1e-6, xtol=1e-8, gtol=1e-8,
-                            max_nfev=100, callback=report if progress is not None else None)
+        sol = least_squares(
+            model.residuals,
+            x0,
+            jac=jac,
+            method="trf",
+            tr_solver=tr_solver,
+            x_scale="jac",
+            loss=loss,
+            f_scale=f_scale,
+            ftol=1e-6,
+            xtol=1e-8,
+            gtol=1e-8,
+            max_nfev=100,
+            callback=report if progress is not None else None,
+        )
         x, nfev, converged = sol.x, int(sol.nfev), bool(sol.status > 0)
     if loss != "linear":
         return x, nfev, converged
@@ -317,9 +353,10 @@ def cofactor(model: BundleModel, x: Array) -> tuple[Array, Array, Array]:
         cho = scipy.linalg.cho_factor(Ns, lower=True, check_finite=False)
         Qs = scipy.linalg.cho_solve(cho, np.eye(len(Ns)), check_finite=False)
     except np.linalg.LinAlgError:
-        raise SolveError(Reason.degenerate_geometry,
-                         "The bundle's normal equations are singular: the images do not determine the unknowns."
-                         ) from None
+        raise SolveError(
+            Reason.degenerate_geometry,
+            "The bundle's normal equations are singular: the images do not determine the unknowns.",
+        ) from None
     if not np.all(np.isfinite(Qs)) or np.min(np.diag(Qs)) <= 0:
         raise SolveError(Reason.degenerate_geometry, "The bundle's normal equations are singular.")
     rho = np.sqrt(np.clip(1.0 - 1.0 / np.diag(Qs), 0.0, 1.0))
@@ -344,21 +381,21 @@ def gauge_basis(model: BundleModel, x: Array, n_gauge: int) -> Array:
     for j in range(model.n_stations):
         c = model.station_col0 + 6 * j
         # R' = exp(-[R g]x) R: a left perturbation -R g, i.e. dw = -Jl^-1 R g
-        E[c:c + 3, :3] = -np.linalg.solve(Jl[j], Rs[j])
-        E[c + 3:c + 6, :3] = -Rs[j] @ skew3(m[None])[0]
-        E[c + 3:c + 6, 3:6] = -Rs[j]
+        E[c : c + 3, :3] = -np.linalg.solve(Jl[j], Rs[j])
+        E[c + 3 : c + 6, :3] = -Rs[j] @ skew3(m[None])[0]
+        E[c + 3 : c + 6, 3:6] = -Rs[j]
         if n_gauge == 7:
-            E[c + 3:c + 6, 6] = stations[j, 3:] + Rs[j] @ m
+            E[c + 3 : c + 6, 6] = stations[j, 3:] + Rs[j] @ m
     if model.offsets_free and n_gauge == 7:
         for k in range(model.n_cam - 1):
             c = model.offset_col0 + 6 * k
-            E[c + 3:c + 6, 6] = offsets[k, 3:]
+            E[c + 3 : c + 6, 6] = offsets[k, 3:]
     for i in np.flatnonzero(model.point_free):
         c = model.point_col[i]
-        E[c:c + 3, :3] = -skew3(q[i][None])[0]
-        E[c:c + 3, 3:6] = np.eye(3)
+        E[c : c + 3, :3] = -skew3(q[i][None])[0]
+        E[c : c + 3, 3:6] = np.eye(3)
         if n_gauge == 7:
-            E[c:c + 3, 6] = q[i]
+            E[c : c + 3, 6] = q[i]
     return E
 
 
@@ -367,8 +404,8 @@ def _observation_statistics(model: BundleModel, x: Array, Q: Array, sign: float)
     (unit weight): ``sign = -1`` gives an adjusted observation's residual cofactor, ``+1`` that of one
     left out (its prediction error)."""
     J = model.jacobian(x)
-    f = model.residuals(x)[:2 * model.n_obs].reshape(-1, 2)
-    Ji = J[:2 * model.n_obs]
+    f = model.residuals(x)[: 2 * model.n_obs].reshape(-1, 2)
+    Ji = J[: 2 * model.n_obs]
     even = Ji[::2]
     counts = np.diff(even.indptr)
     width = int(counts.max()) if len(counts) else 0
@@ -394,8 +431,14 @@ def _observation_statistics(model: BundleModel, x: Array, Q: Array, sign: float)
     return T2, det
 
 
-def solve_network(net: NetworkInput, *, reject_outliers: bool = True, robust_scale_px: float = 2.0,
-                  progress: Progress | None = None, near: bool = False) -> NetworkSolution:
+def solve_network(
+    net: NetworkInput,
+    *,
+    reject_outliers: bool = True,
+    robust_scale_px: float = 2.0,
+    progress: Progress | None = None,
+    near: bool = False,
+) -> NetworkSolution:
     """Adjust the network, rejecting gross errors (see the module docstring), with covariance.
 
     ``near``: the start values are the solution of a nearly equal network (e.g. one epoch less, for
@@ -490,14 +533,29 @@ def solve_network(net: NetworkInput, *, reject_outliers: bool = True, robust_sca
     pc = everything.camera_frame_points(everything.pack(cams, stations, offsets, points))
     behind = inliers & (pc[:, 2] <= 0)
     if np.any(behind):
-        raise SolveError(Reason.behind_camera,
-                         f"{int(behind.sum())} observations lie behind the adjusted camera: the start values were "
-                         f"too poor.")
+        raise SolveError(
+            Reason.behind_camera,
+            f"{int(behind.sum())} observations lie behind the adjusted camera: the start values were too poor.",
+        )
     return NetworkSolution(
-        cameras=cams, stations=stations, offsets=offsets, points=points, model=model, x=x, Q=Q, sigma0=sigma0,
-        redundancy=int(redundancy), residuals_px=residuals, inliers=inliers.copy(),
-        point_used=point_free | ~net.point_free, global_correlation=rho, n_iter=n_iter,
-        initial_cost=initial_cost, final_cost=0.5 * float(f @ f), converged=converged)
+        cameras=cams,
+        stations=stations,
+        offsets=offsets,
+        points=points,
+        model=model,
+        x=x,
+        Q=Q,
+        sigma0=sigma0,
+        redundancy=int(redundancy),
+        residuals_px=residuals,
+        inliers=inliers.copy(),
+        point_used=point_free | ~net.point_free,
+        global_correlation=rho,
+        n_iter=n_iter,
+        initial_cost=initial_cost,
+        final_cost=0.5 * float(f @ f),
+        converged=converged,
+    )
 
 
 # -- uncertainty of poses ------------------------------------------------------------------

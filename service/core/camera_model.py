@@ -30,6 +30,7 @@ def _flat(a: ArrayLike) -> Array:
     """A writable, contiguous float64 1-D copy or view: the one array type the kernels are compiled for."""
     return np.require(np.ravel(a), np.float64, ["C", "W"])
 
+
 PARAMETER_NAMES = ("c_mm", "x0_mm", "y0_mm", "K1", "K2", "K3", "P1", "P2", "B1", "B2")
 
 
@@ -100,8 +101,15 @@ class BrownFraser:
 
     def _coefficients(self) -> tuple[float, ...]:
         """K1, K2, K3, P1, P2, B1, B2 as floats (one compiled kernel for any way they were given)."""
-        return (float(self.K1), float(self.K2), float(self.K3), float(self.P1), float(self.P2), float(self.B1),
-                float(self.B2))
+        return (
+            float(self.K1),
+            float(self.K2),
+            float(self.K3),
+            float(self.P1),
+            float(self.P2),
+            float(self.B1),
+            float(self.B2),
+        )
 
     def _correction(self, xb: Array, yb: Array) -> tuple[Array, Array]:
         xb, yb = np.broadcast_arrays(np.asarray(xb, dtype=np.float64), np.asarray(yb, dtype=np.float64))

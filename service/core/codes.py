@@ -203,8 +203,10 @@ class CodeFamily:
     def __post_init__(self) -> None:
         r = self.ring_radii
         if not (len(r) >= 2 and len(r) % 2 == 0 and self.ring_inner < min(r) and max(r) < self.ring_outer):
-            raise ValueError(f"{self.name}: ring_radii {r} must be an even number of radii inside "
-                             f"[{self.ring_inner}, {self.ring_outer}]")
+            raise ValueError(
+                f"{self.name}: ring_radii {r} must be an even number of radii inside "
+                f"[{self.ring_inner}, {self.ring_outer}]"
+            )
 
     @property
     def n_codes(self) -> int:

@@ -105,8 +105,9 @@ def _axes(uu, uv, vv):
 
 
 @njit(cache=True, error_model="numpy")
-def classify_kernel(box, area_px, poly_area, mu, width, height, border, min_area, max_area, max_aspect,
-                    min_polygon_fill):
+def classify_kernel(
+    box, area_px, poly_area, mu, width, height, border, min_area, max_area, max_aspect, min_polygon_fill
+):
     """Per contour (C): semi-major axis a (px) and the classes cut (by the image border), small, big,
     long (b < a / max_aspect), disk_like (not long, and its polygon fills its moments' ellipse) and
     host (a disk-like candidate whose coded ring may be around it)."""
@@ -117,8 +118,12 @@ def classify_kernel(box, area_px, poly_area, mu, width, height, border, min_area
     for c in range(nc):
         ac, bc = _axes(mu[c, 0], mu[c, 1], mu[c, 2])
         a[c] = ac
-        cut[c] = box[c, 0] < border or box[c, 1] < border or box[c, 2] > width - 1 - border or \
-            box[c, 3] > height - 1 - border
+        cut[c] = (
+            box[c, 0] < border
+            or box[c, 1] < border
+            or box[c, 2] > width - 1 - border
+            or box[c, 3] > height - 1 - border
+        )
         small[c], big[c] = area_px[c] < min_area, area_px[c] > max_area
         long[c] = not (bc * max_aspect >= ac)
         disk_like[c] = not long[c] and poly_area[c] >= min_polygon_fill * np.pi * ac * bc
@@ -170,7 +175,19 @@ def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels for the types :mod:`service.core.detect` passes."""
     pts = np.array([[0, 0], [2, 0], [2, 2], [0, 2]], dtype=np.int32)
     box, area_px, poly_area, centre, mu, box_centre, reach = contour_stats_kernel(
-        pts, np.array([0], dtype=np.intp), np.array([4], dtype=np.intp))
+        pts, np.array([0], dtype=np.intp), np.array([4], dtype=np.intp)
+    )
     classify_kernel(box, area_px, poly_area, mu, 10, 10, 2, 6.0, 5000.0, 4.0, 0.9)
-    windows_kernel(box_centre, reach, mu, centre, np.array([0], dtype=np.intp), np.array([np.inf]), 10, 10, 0,
-                   np.array([4, 6], dtype=np.intp), 2)
+    windows_kernel(
+        box_centre,
+        reach,
+        mu,
+        centre,
+        np.array([0], dtype=np.intp),
+        np.array([np.inf]),
+        10,
+        10,
+        0,
+        np.array([4, 6], dtype=np.intp),
+        2,
+    )

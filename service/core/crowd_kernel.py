@@ -65,7 +65,7 @@ def _pairs_near(box, centre, box_centre, reach, a, host, query, ring_outer, widt
             radius[c] = r
             rq[m] = r
             m += 1
-    cell = max(8, int(np.median(rq[:max(nq, 1)]))) if nq > 0 else 8
+    cell = max(8, int(np.median(rq[: max(nq, 1)]))) if nq > 0 else 8
     nx, ny, start, members = _box_grid(box, cell, width, height)
     stamp = np.full(query.size, -1, dtype=np.intp)
     cap = max(16, 8 * nq)
@@ -87,8 +87,12 @@ def _pairs_near(box, centre, box_centre, reach, a, host, query, ring_outer, widt
                         continue
                     stamp[j] = i
                     # the box within r of the centre (Chebyshev): its pixels may be
-                    if (box[j, 0] - r > centre[i, 0] or box[j, 2] + r < centre[i, 0]
-                            or box[j, 1] - r > centre[i, 1] or box[j, 3] + r < centre[i, 1]):
+                    if (
+                        box[j, 0] - r > centre[i, 0]
+                        or box[j, 2] + r < centre[i, 0]
+                        or box[j, 1] - r > centre[i, 1]
+                        or box[j, 3] + r < centre[i, 1]
+                    ):
                         continue
                     if m == cap:
                         cap *= 2
@@ -101,8 +105,9 @@ def _pairs_near(box, centre, box_centre, reach, a, host, query, ring_outer, widt
 
 
 @njit(cache=True, error_model="numpy")
-def neighbours_kernel(box, centre, mu, box_centre, reach, a, host, disk_like, query, ring_inner, ring_outer,
-                      min_piece_half, width, height):
+def neighbours_kernel(
+    box, centre, mu, box_centre, reach, a, host, disk_like, query, ring_inner, ring_outer, min_piece_half, width, height
+):
     """``detect._neighbours``: per blob the host whose coded ring it is a piece of (-1: none) and,
     for the queries, the distance from its box centre to the nearest thresholded pixel of another
     blob; and the pairs looked at and the contours visited (the work).
@@ -135,8 +140,12 @@ def neighbours_kernel(box, centre, mu, box_centre, reach, a, host, disk_like, qu
         half = 2 * np.sqrt(max(mu[j, 0] * ex * ex + 2 * mu[j, 1] * ex * ey + mu[j, 2] * ey * ey, 0.0))
         rho = d * per_px
         if disk_like[j]:
-            c = (rho > ring_inner - 0.6 and (d - half) * per_px > 1.0
-                 and (d + half) * per_px < ring_outer + 0.4 and half * per_px >= min_piece_half)
+            c = (
+                rho > ring_inner - 0.6
+                and (d - half) * per_px > 1.0
+                and (d + half) * per_px < ring_outer + 0.4
+                and half * per_px >= min_piece_half
+            )
         else:
             c = rho < ring_outer + 0.5
         per[k], claim[k] = per_px, c
@@ -212,7 +221,7 @@ def mask_windows_kernel(img, cu, cv, half, crowd, own, seg):
         i = crowd[k]
         h = half[i]
         s = 2 * h + 1
-        P = buf[boff[i]:boff[i] + s * s].reshape(s, s)
+        P = buf[boff[i] : boff[i] + s * s].reshape(s, s)
         for a in range(s):
             for b in range(s):
                 P[a, b] = np.float32(img[cv[i] - h + a, cu[i] - h + b])

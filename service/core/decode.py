@@ -149,8 +149,7 @@ def _pattern(family: CodeFamily) -> tuple[Array, int, int]:
     disk = np.concatenate([r * _unit_circle(8) for r in DISK_RADII])
     gap = np.concatenate([r * _unit_circle(24) for r in GAP_RADII])
     # Ring angle t runs with the target's theta, i.e. psi = -t in the normalised frame.
-    ring = np.concatenate([r * _unit_circle(family.n_bits * SAMPLES_PER_SECTOR, -1.0)
-                           for r in family.ring_radii])
+    ring = np.concatenate([r * _unit_circle(family.n_bits * SAMPLES_PER_SECTOR, -1.0) for r in family.ring_radii])
     return np.concatenate([disk, gap, ring]), len(disk), len(gap)
 
 
@@ -176,8 +175,15 @@ EDGE_STEP = 0.1  # radii between the edge search's samples
 @lru_cache(maxsize=4)
 def _layout(family: CodeFamily) -> _Layout:
     r0, r1 = family.ring_inner + 0.2, family.ring_outer - 0.2
-    ring_pts = np.concatenate([np.zeros((1, 2)), 1.5 * _unit_circle(12), r0 * _unit_circle(48),
-                               0.5 * (r0 + r1) * _unit_circle(48), r1 * _unit_circle(48)])
+    ring_pts = np.concatenate(
+        [
+            np.zeros((1, 2)),
+            1.5 * _unit_circle(12),
+            r0 * _unit_circle(48),
+            0.5 * (r0 + r1) * _unit_circle(48),
+            r1 * _unit_circle(48),
+        ]
+    )
     # No further out than mid-gap, so that a ring squeezed against the disk by a steep view cannot
     # be taken for the disk's edge.
     rho = np.arange(0.4, 1.55, EDGE_STEP)
@@ -190,9 +196,18 @@ def _layout(family: CodeFamily) -> _Layout:
     S = SAMPLES_PER_SECTOR
     a, b = (round(f * S) for f in SECTOR_CORE)
     assert b - S // 2 == S // 2 - a == RUN - 1  # the two halves of a core are runs of RUN samples
-    return _Layout(ring_pts=ring_pts, refine_pts=(rho[:, None, None] * dirs[None]).reshape(-1, 2), rho=rho,
-                   dirs=dirs, lo_index=int(np.floor(virtual)), lo_gamma=float(virtual - np.floor(virtual)),
-                   pts=pts, n_disk=n_disk, n_gap=n_gap, core_a=a)
+    return _Layout(
+        ring_pts=ring_pts,
+        refine_pts=(rho[:, None, None] * dirs[None]).reshape(-1, 2),
+        rho=rho,
+        dirs=dirs,
+        lo_index=int(np.floor(virtual)),
+        lo_gamma=float(virtual - np.floor(virtual)),
+        pts=pts,
+        n_disk=n_disk,
+        n_gap=n_gap,
+        core_a=a,
+    )
 
 
 def _check_ellipses(ellipses: ArrayLike) -> Array:
@@ -200,8 +215,7 @@ def _check_ellipses(ellipses: ArrayLike) -> Array:
     if e.ndim == 1:
         e = e[None]
     if e.ndim != 2 or e.shape[1] != 5:
-        raise ValueError(
-            f"ellipses must be (N, 5) = (u_c, v_c, a_px, b_px, angle_rad), got shape {e.shape}")
+        raise ValueError(f"ellipses must be (N, 5) = (u_c, v_c, a_px, b_px, angle_rad), got shape {e.shape}")
     return e
 
 
@@ -287,19 +301,53 @@ def read_codes(
     L = _layout(family)
     code_of, roll_of = family_word_table(family)
     # Integer images quantise weak noise to a zero spread; count at least the rounding error then.
-    limits = np.array([min_confidence, min_snr, min_minor_px, min_diameter_px, min_margin_snr,
-                       MIN_AXIS_RATIO, MAX_GAP_SPREAD, MAX_SECTOR_LEVEL], dtype=np.float64)
+    limits = np.array(
+        [
+            min_confidence,
+            min_snr,
+            min_minor_px,
+            min_diameter_px,
+            min_margin_snr,
+            MIN_AXIS_RATIO,
+            MAX_GAP_SPREAD,
+            MAX_SECTOR_LEVEL,
+        ],
+        dtype=np.float64,
+    )
     ok, codes, values, bits, levels, used = decode_kernel.read_rings_kernel(
-        np.ascontiguousarray(img), mode, np.ascontiguousarray(e), valid, bg, L.ring_pts, L.refine_pts, L.rho,
-        EDGE_STEP, L.dirs, L.lo_index, L.lo_gamma, L.pts, L.n_disk, L.n_gap, len(family.ring_radii),
-        family.n_bits, SAMPLES_PER_SECTOR, L.core_a, RUN, code_of, roll_of, 0.3 if integer else 0.0, limits)
+        np.ascontiguousarray(img),
+        mode,
+        np.ascontiguousarray(e),
+        valid,
+        bg,
+        L.ring_pts,
+        L.refine_pts,
+        L.rho,
+        EDGE_STEP,
+        L.dirs,
+        L.lo_index,
+        L.lo_gamma,
+        L.pts,
+        L.n_disk,
+        L.n_gap,
+        len(family.ring_radii),
+        family.n_bits,
+        SAMPLES_PER_SECTOR,
+        L.core_a,
+        RUN,
+        code_of,
+        roll_of,
+        0.3 if integer else 0.0,
+        limits,
+    )
     out: list[CodeReading | None] = [None] * n
     K = decode_kernel
     values_py, codes_py = values.tolist(), codes.tolist()  # Python scalars in one go
     for i in np.flatnonzero(ok).tolist():
         v = values_py[i]
-        out[i] = CodeReading(codes_py[i], v[K.ROLL_DEG], v[K.CONFIDENCE], bits[i], levels[i], v[K.DISK_DN],
-                             v[K.BACKGROUND_DN], used[i])
+        out[i] = CodeReading(
+            codes_py[i], v[K.ROLL_DEG], v[K.CONFIDENCE], bits[i], levels[i], v[K.DISK_DN], v[K.BACKGROUND_DN], used[i]
+        )
     return out
 
 
@@ -316,8 +364,13 @@ def read_code(
     disk. The result is ``None`` unless the ring reads as a valid code with a
     margin of at least ``min_confidence``; the reader never guesses.
     """
-    return read_codes(image, [ellipse], None if background_dn is None else [background_dn],
-                      min_confidence=min_confidence, family=family)[0]
+    return read_codes(
+        image,
+        [ellipse],
+        None if background_dn is None else [background_dn],
+        min_confidence=min_confidence,
+        family=family,
+    )[0]
 
 
 @lru_cache(maxsize=1)  # once per process

@@ -59,8 +59,12 @@ def _sample(img, mode, e, m00, m01, m10, m11, pts, out):
             out[k] = float((top * 32 + (bot - top) * fy + 512) >> 10)
         else:
             ax, ay = fx / 32.0, fy / 32.0
-            s = ((1.0 - ax) * (1.0 - ay) * float(p00) + ax * (1.0 - ay) * float(p01)
-                 + (1.0 - ax) * ay * float(p10) + ax * ay * float(p11))
+            s = (
+                (1.0 - ax) * (1.0 - ay) * float(p00)
+                + ax * (1.0 - ay) * float(p01)
+                + (1.0 - ax) * ay * float(p10)
+                + ax * ay * float(p11)
+            )
             out[k] = np.rint(s) if mode == ROUNDED else s
 
 
@@ -267,8 +271,26 @@ def _refine(img, mode, e, rho, step, dirs, pts, lo_index, lo_gamma, out):
 
 
 @njit(cache=True, error_model="numpy")
-def _read_ring(img, mode, e, bg_given, pts, n_disk, n_gap, n_radii, K, S, core_a, run, code_of, roll_of,
-               floor_dn, limits, levels_out, bits_out):
+def _read_ring(
+    img,
+    mode,
+    e,
+    bg_given,
+    pts,
+    n_disk,
+    n_gap,
+    n_radii,
+    K,
+    S,
+    core_a,
+    run,
+    code_of,
+    roll_of,
+    floor_dn,
+    limits,
+    levels_out,
+    bits_out,
+):
     """Read the ring of the ellipse ``e`` (see ``decode._measure``): whether it passes every check
     of ``decode.read_codes``, its code, roll (sectors), margin, roll_deg, disk and background DN.
     ``levels_out`` and ``bits_out`` (K,) receive the sectors as read."""
@@ -283,7 +305,7 @@ def _read_ring(img, mode, e, bg_given, pts, n_disk, n_gap, n_radii, K, S, core_a
             return False, 0, 0, -1.0, np.nan, np.nan, np.nan
     work = np.empty(max(n_disk, n_gap))
     disk_dn = _median(vals[:n_disk], work)
-    gap = vals[n_disk:n_disk + n_gap]
+    gap = vals[n_disk : n_disk + n_gap]
     gap_dn = _median(gap, work)
     bg = gap_dn if bg_given != bg_given else bg_given
     # noise from differences of angular neighbours round the gap (see decode._measure)
@@ -300,7 +322,7 @@ def _read_ring(img, mode, e, bg_given, pts, n_disk, n_gap, n_radii, K, S, core_a
     contrast = disk_dn - bg
     scale = contrast if contrast > 0 else 1.0
     # profile (mean over radii) and the inner/outer halves' means, per ring sample
-    ring = vals[n_disk + n_gap:]
+    ring = vals[n_disk + n_gap :]
     h = n_radii // 2
     profile, prof2 = np.zeros(KS), np.zeros((2, KS))
     for ri in range(n_radii):  # radius by radius: the inner loops vectorise
@@ -382,17 +404,49 @@ def _read_ring(img, mode, e, bg_given, pts, n_disk, n_gap, n_radii, K, S, core_a
     roll_deg = np.degrees(np.arctan2(-(m10 * cp + m11 * sp), m00 * cp + m01 * sp))
     b_px, a_px = min(e[2], e[3]), max(e[2], e[3])
     noise = max(noise_dn, floor_dn)
-    good = (b_px >= min_minor and 2 * a_px >= min_diam and b_px >= min_ratio * a_px
-            and contrast > min_snr * noise and best_margin >= min_conf
-            and best_margin * contrast >= min_margin_snr * noise
-            and (spread_hi - spread_lo) / scale <= max_spread
-            and best_thr > 0.1 and best_thr < 0.8 and level_max <= max_level and code > 0)
+    good = (
+        b_px >= min_minor
+        and 2 * a_px >= min_diam
+        and b_px >= min_ratio * a_px
+        and contrast > min_snr * noise
+        and best_margin >= min_conf
+        and best_margin * contrast >= min_margin_snr * noise
+        and (spread_hi - spread_lo) / scale <= max_spread
+        and best_thr > 0.1
+        and best_thr < 0.8
+        and level_max <= max_level
+        and code > 0
+    )
     return good, code, roll, best_margin, roll_deg, disk_dn, bg
 
 
 @njit(cache=True, error_model="numpy")
-def read_rings_kernel(img, mode, e, todo, bg, ring_pts, refine_pts, rho, step, dirs, lo_index, lo_gamma,
-                      pts, n_disk, n_gap, n_radii, n_bits, S, core_a, run, code_of, roll_of, floor_dn, limits):
+def read_rings_kernel(
+    img,
+    mode,
+    e,
+    todo,
+    bg,
+    ring_pts,
+    refine_pts,
+    rho,
+    step,
+    dirs,
+    lo_index,
+    lo_gamma,
+    pts,
+    n_disk,
+    n_gap,
+    n_radii,
+    n_bits,
+    S,
+    core_a,
+    run,
+    code_of,
+    roll_of,
+    floor_dn,
+    limits,
+):
     """Read the code rings of the ellipses ``e`` (N, 5) where ``todo`` (N,), as ``decode.read_codes``.
 
     ``bg`` (N,): the background DN, NaN to measure it in the gap. The pattern arrays are those of
@@ -423,10 +477,46 @@ def read_rings_kernel(img, mode, e, todo, bg, ring_pts, refine_pts, rho, step, d
             continue
         # read with the given ellipse and with its re-fit to the disk edge (see decode._read)
         _refine(img, mode, e[i], rho, step, dirs, refine_pts, lo_index, lo_gamma, fit)
-        g0, c0, r0, m0, d0, disk0, bg0 = _read_ring(img, mode, e[i], bg[i], pts, n_disk, n_gap, n_radii, K, S,
-                                                    core_a, run, code_of, roll_of, floor_dn, limits, lv0, b0)
-        g1, c1, r1, m1, d1, disk1, bg1 = _read_ring(img, mode, fit, bg[i], pts, n_disk, n_gap, n_radii, K, S,
-                                                    core_a, run, code_of, roll_of, floor_dn, limits, lv1, b1)
+        g0, c0, r0, m0, d0, disk0, bg0 = _read_ring(
+            img,
+            mode,
+            e[i],
+            bg[i],
+            pts,
+            n_disk,
+            n_gap,
+            n_radii,
+            K,
+            S,
+            core_a,
+            run,
+            code_of,
+            roll_of,
+            floor_dn,
+            limits,
+            lv0,
+            b0,
+        )
+        g1, c1, r1, m1, d1, disk1, bg1 = _read_ring(
+            img,
+            mode,
+            fit,
+            bg[i],
+            pts,
+            n_disk,
+            n_gap,
+            n_radii,
+            K,
+            S,
+            core_a,
+            run,
+            code_of,
+            roll_of,
+            floor_dn,
+            limits,
+            lv1,
+            b1,
+        )
         if not (g0 or g1) or (g0 and g1 and c0 != c1):
             continue
         # of two agreeing readings, the one with the wider margin

@@ -72,8 +72,7 @@ Array = NDArray[np.float64]
 Image = NDArray[np.uint8] | NDArray[np.uint16]  # a frame, once _check_image has accepted it
 f32, f64 = np.float32, np.float64
 
-REASONS = ("saturated", "cut_off", "merged_or_misshapen", "too_small", "too_big", "low_contrast", "ring",
-           "too_many")
+REASONS = ("saturated", "cut_off", "merged_or_misshapen", "too_small", "too_big", "low_contrast", "ring", "too_many")
 _SATURATED, _CUT_OFF, _MISSHAPEN, _TOO_SMALL, _TOO_BIG, _LOW_CONTRAST, _RING, _TOO_MANY = range(len(REASONS))
 
 COARSE_STEP = 8  # px per coarse background sample
@@ -210,8 +209,9 @@ class Rejections:
 def _check_image(image: NDArray[np.generic]) -> Image:
     img: Any = np.asarray(image)
     if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16):
-        raise SolveError(Reason.bad_image,
-                         f"Expected a 2-D uint8 or uint16 image, got {img.dtype} of shape {img.shape}.")
+        raise SolveError(
+            Reason.bad_image, f"Expected a 2-D uint8 or uint16 image, got {img.dtype} of shape {img.shape}."
+        )
     if min(img.shape) < 2 * COARSE_STEP:
         raise SolveError(Reason.bad_image, f"The image ({img.shape[1]} x {img.shape[0]} px) is too small.")
     return np.ascontiguousarray(img)
@@ -260,14 +260,14 @@ def _background(img: Image, full_dn: float, seg_dn: float) -> _Background:
     half = min(512, int(np.ceil(NOISE_HALF_DN * full_dn / 255.0 / 2**shift)))
     tiles = tile_noise_kernel(img, bg, COARSE_STEP, NOISE_TILE_PX, NOISE_ROWS, shift, half)
     per = NOISE_TILE_PX // COARSE_STEP  # the tiles are whole coarse cells from the origin: aligned
-    noise = cv2.resize(tiles.astype(f32), (tiles.shape[1] * per, tiles.shape[0] * per),
-                       interpolation=cv2.INTER_LINEAR)[:bg.shape[0], :bg.shape[1]]
+    noise = cv2.resize(tiles.astype(f32), (tiles.shape[1] * per, tiles.shape[0] * per), interpolation=cv2.INTER_LINEAR)[
+        : bg.shape[0], : bg.shape[1]
+    ]
     seg = np.maximum(f32(K_SEG) * noise, f32(seg_dn))
     return _Background(cast(NDArray[np.float32], bg), noise, seg, tiles)
 
 
-def _foreground(img: Image, back: _Background,
-                out: NDArray[np.uint8] | None = None) -> NDArray[np.uint8]:
+def _foreground(img: Image, back: _Background, out: NDArray[np.uint8] | None = None) -> NDArray[np.uint8]:
     """0/255 mask of the pixels brighter than the coarse background plus its segmentation level,
     in ``out`` if given."""
     h, w = img.shape
@@ -315,8 +315,14 @@ def _contours(mask: NDArray[np.uint8]) -> _Contours:
     return _Contours(*contour_stats_kernel(np.require(pts, np.int32, ["C", "W"]), starts, lengths))
 
 
-def _neighbours(ct: _Contours, a: Array, host: NDArray[np.bool_], disk_like: NDArray[np.bool_],
-                query: NDArray[np.bool_], shape: tuple[int, int]) -> tuple[NDArray[np.intp], Array, int, int]:
+def _neighbours(
+    ct: _Contours,
+    a: Array,
+    host: NDArray[np.bool_],
+    disk_like: NDArray[np.bool_],
+    query: NDArray[np.bool_],
+    shape: tuple[int, int],
+) -> tuple[NDArray[np.intp], Array, int, int]:
     """Per blob: the ``host`` (disk candidate) whose coded ring it is a piece of, or -1, and for
     each ``query`` (the candidates) the distance from its box centre to the nearest thresholded
     pixel of another blob; and the pairs examined and contours visited.
@@ -339,8 +345,21 @@ def _neighbours(ct: _Contours, a: Array, host: NDArray[np.bool_], disk_like: NDA
     """
     c = np.ascontiguousarray  # one compiled kernel for every way the arrays come
     host_of, near, n_pairs, visits = neighbours_kernel(
-        c(ct.box), c(ct.centre), c(ct.mu), c(ct.box_centre), c(ct.reach), c(a), c(host), c(disk_like), c(query),
-        float(RING_INNER), float(RING_OUTER), MIN_PIECE_HALF, shape[1], shape[0])
+        c(ct.box),
+        c(ct.centre),
+        c(ct.mu),
+        c(ct.box_centre),
+        c(ct.reach),
+        c(a),
+        c(host),
+        c(disk_like),
+        c(query),
+        float(RING_INNER),
+        float(RING_OUTER),
+        MIN_PIECE_HALF,
+        shape[1],
+        shape[0],
+    )
     return host_of, near, int(n_pairs), int(visits)
 
 
@@ -387,9 +406,15 @@ class _Measured:
     table: Array  # (NF, n): the kernel's output, whose rows the fields above are
 
 
-def _measure_all(img: NDArray[np.generic], cu: NDArray[np.intp], cv: NDArray[np.intp],
-                 radius: NDArray[np.intp], seg_dn: Array, full_dn: float,
-                 own: Array | None) -> tuple[_Measured, NDArray[np.bool_]]:
+def _measure_all(
+    img: NDArray[np.generic],
+    cu: NDArray[np.intp],
+    cv: NDArray[np.intp],
+    radius: NDArray[np.intp],
+    seg_dn: Array,
+    full_dn: float,
+    own: Array | None,
+) -> tuple[_Measured, NDArray[np.bool_]]:
     """Measure the blob in the circle of radius ``radius + 1/2`` px about each (cu, cv), with the
     segmentation level ``seg_dn`` (n,) DN above the background of each window. ``own`` (n, 5):
     rows (x0, y0, Q_uu, Q_uv, Q_vv), the blob's own region ``x' Q x <= 1`` about (x0, y0) from the
@@ -426,15 +451,33 @@ def _measure_all(img: NDArray[np.generic], cu: NDArray[np.intp], cv: NDArray[np.
     out, n_sat, edge = measure_windows_kernel(img, cu, cv, radius, placed, seg_dn, float(full_dn), buf, boff)
     K = detect_kernel
     return _Measured(
-        uv=out[K.UV:K.UV + 2].T, ellipse=out[K.ELLIPSE:K.ELLIPSE + 5].T, flux=out[K.FLUX], level=out[K.LEVEL],
-        peak=out[K.PEAK], background=out[K.BACKGROUND], sb2=out[K.SB2], k_shot=out[K.K_SHOT],
-        var_base=out[K.VAR_BASE], var_per_k=out[K.VAR_PER_K], mismatch=out[K.MISMATCH], noise_bg=out[K.NOISE_BG],
-        m3sq=out[K.M3SQ], kurt=out[K.KURT], kurt_model=out[K.KURT_MODEL], flat_top=out[K.FLAT_TOP],
-        var_major=out[K.VAR_MAJOR], sums=out[K.SUMS:K.SUMS + 7].T, n_sat=n_sat, edge=edge, table=out), placed
+        uv=out[K.UV : K.UV + 2].T,
+        ellipse=out[K.ELLIPSE : K.ELLIPSE + 5].T,
+        flux=out[K.FLUX],
+        level=out[K.LEVEL],
+        peak=out[K.PEAK],
+        background=out[K.BACKGROUND],
+        sb2=out[K.SB2],
+        k_shot=out[K.K_SHOT],
+        var_base=out[K.VAR_BASE],
+        var_per_k=out[K.VAR_PER_K],
+        mismatch=out[K.MISMATCH],
+        noise_bg=out[K.NOISE_BG],
+        m3sq=out[K.M3SQ],
+        kurt=out[K.KURT],
+        kurt_model=out[K.KURT_MODEL],
+        flat_top=out[K.FLAT_TOP],
+        var_major=out[K.VAR_MAJOR],
+        sums=out[K.SUMS : K.SUMS + 7].T,
+        n_sat=n_sat,
+        edge=edge,
+        table=out,
+    ), placed
 
 
-def _assess(meas: _Measured, usable: NDArray[np.bool_], settings: DetectSettings,
-            contrast_dn: Array) -> tuple[NDArray[np.intp], Array, Array]:
+def _assess(
+    meas: _Measured, usable: NDArray[np.bool_], settings: DetectSettings, contrast_dn: Array
+) -> tuple[NDArray[np.intp], Array, Array]:
     """Reason (-1: accepted; rim contact not included), sigma_px and fill of each window, whose
     peak must be ``contrast_dn`` (n,) DN above its background.
 
@@ -446,40 +489,81 @@ def _assess(meas: _Measured, usable: NDArray[np.bool_], settings: DetectSettings
     fill ``(A + Ae - m) / (A + Ae + m)`` of the blob's area ``A``, the ellipse's ``Ae`` and their
     mismatch ``m`` less what noise adds to it (``sqrt(2 / pi)`` sigma per pixel).
     """
-    return assess_kernel(meas.table, meas.n_sat, meas.edge, usable, np.require(contrast_dn, f64, ["C", "W"]),
-                         *_assess_constants(settings))
+    return assess_kernel(
+        meas.table,
+        meas.n_sat,
+        meas.edge,
+        usable,
+        np.require(contrast_dn, f64, ["C", "W"]),
+        *_assess_constants(settings),
+    )
 
 
 @lru_cache(maxsize=8)
 def _assess_constants(settings: DetectSettings) -> tuple[Array, NDArray[np.intp]]:
     """The limits and reason codes :func:`~service.core.detect_kernel.assess_kernel` takes."""
-    limits = np.array([settings.min_area_px, settings.max_area_px, settings.max_aspect, settings.min_fill,
-                       MAX_SATURATED_PX, MIN_PLATEAU_B_PX, MIN_FLAT_TOP, *SHAPE_SIGMA, *SHAPE_FLOOR, *MAX_AREA_RATIO],
-                      dtype=f64)
+    limits = np.array(
+        [
+            settings.min_area_px,
+            settings.max_area_px,
+            settings.max_aspect,
+            settings.min_fill,
+            MAX_SATURATED_PX,
+            MIN_PLATEAU_B_PX,
+            MIN_FLAT_TOP,
+            *SHAPE_SIGMA,
+            *SHAPE_FLOOR,
+            *MAX_AREA_RATIO,
+        ],
+        dtype=f64,
+    )
     return limits, np.array([_SATURATED, _LOW_CONTRAST, _TOO_SMALL, _TOO_BIG, _MISSHAPEN], dtype=np.intp)
 
 
-def _blobs(meas: _Measured, index: NDArray[np.intp], sigma: Array, fill: Array,
-           has_ring: NDArray[np.bool_] | None = None) -> Blobs:
-    return Blobs(uv=meas.uv[index], ellipse=meas.ellipse[index], sigma_px=sigma[index],
-                 area_px=meas.flux[index] / meas.level[index], peak_dn=meas.peak[index],
-                 background_dn=meas.background[index], fill=fill[index],
-                 has_ring=np.zeros(index.size, dtype=bool) if has_ring is None else has_ring[index])
+def _blobs(
+    meas: _Measured, index: NDArray[np.intp], sigma: Array, fill: Array, has_ring: NDArray[np.bool_] | None = None
+) -> Blobs:
+    return Blobs(
+        uv=meas.uv[index],
+        ellipse=meas.ellipse[index],
+        sigma_px=sigma[index],
+        area_px=meas.flux[index] / meas.level[index],
+        peak_dn=meas.peak[index],
+        background_dn=meas.background[index],
+        fill=fill[index],
+        has_ring=np.zeros(index.size, dtype=bool) if has_ring is None else has_ring[index],
+    )
 
 
-def _windows(ct: _Contours, todo: NDArray[np.intp], near: Array, shape: tuple[int, int],
-             window_px: int) -> tuple[NDArray[np.intp], Array, NDArray[np.bool_]]:
+def _windows(
+    ct: _Contours, todo: NDArray[np.intp], near: Array, shape: tuple[int, int], window_px: int
+) -> tuple[NDArray[np.intp], Array, NDArray[np.bool_]]:
     """Window radius of each blob to measure, its own region for :func:`_measure_all` where
     another blob reaches into the window (its thresholded ellipse + 1.5 px; NaN rows elsewhere), and
     whether the image border limits the window. A window holds the thresholded blob plus
     WINDOW_MARGIN_PX; the windows within one step of WINDOW_RADII share the largest radius among
     them (:func:`~service.core.contour_kernel.windows_kernel`)."""
-    return windows_kernel(ct.box_centre, ct.reach, ct.mu, ct.centre, np.ascontiguousarray(todo, dtype=np.intp),
-                          near, shape[1], shape[0], int(window_px), _RADII, WINDOW_MARGIN_PX)
+    return windows_kernel(
+        ct.box_centre,
+        ct.reach,
+        ct.mu,
+        ct.centre,
+        np.ascontiguousarray(todo, dtype=np.intp),
+        near,
+        shape[1],
+        shape[0],
+        int(window_px),
+        _RADII,
+        WINDOW_MARGIN_PX,
+    )
 
 
-def detect_blobs(image: NDArray[np.generic], settings: DetectSettings = DetectSettings(), *,
-                 mask_buffer: NDArray[np.uint8] | None = None) -> tuple[Blobs, Rejections]:
+def detect_blobs(
+    image: NDArray[np.generic],
+    settings: DetectSettings = DetectSettings(),
+    *,
+    mask_buffer: NDArray[np.uint8] | None = None,
+) -> tuple[Blobs, Rejections]:
     """Find and measure every bright target (disk) in a full frame.
 
     Parameters
@@ -508,15 +592,29 @@ def detect_blobs(image: NDArray[np.generic], settings: DetectSettings = DetectSe
     """
     img = _check_image(image)
     (height, width), (full, contrast, seg) = img.shape, _levels(img, settings)
-    if mask_buffer is not None and (mask_buffer.shape != img.shape or mask_buffer.dtype != np.uint8
-                                    or not mask_buffer.flags.c_contiguous or not mask_buffer.flags.writeable):
+    if mask_buffer is not None and (
+        mask_buffer.shape != img.shape
+        or mask_buffer.dtype != np.uint8
+        or not mask_buffer.flags.c_contiguous
+        or not mask_buffer.flags.writeable
+    ):
         mask_buffer = None
     back = _background(img, full, seg)
     ct = _contours(_foreground(img, back, mask_buffer))
     box, n = ct.box, ct.area_px.size
     a, cut, small, big, long, disk_like, host = classify_kernel(
-        box, ct.area_px, ct.poly_area, ct.mu, width, height, settings.border_px, float(settings.min_area_px),
-        float(settings.max_area_px), float(settings.max_aspect), MIN_POLYGON_FILL)
+        box,
+        ct.area_px,
+        ct.poly_area,
+        ct.mu,
+        width,
+        height,
+        settings.border_px,
+        float(settings.min_area_px),
+        float(settings.max_area_px),
+        float(settings.max_aspect),
+        MIN_POLYGON_FILL,
+    )
     # candidates: plausible as a target or as a ring's host (a disk cut by the border still marks
     # its ring); before any window is measured, their brightest pixel against the noise there,
     # where the noise sets the bar (elsewhere the measurement's test is as cheap), and all of them
@@ -526,8 +624,7 @@ def detect_blobs(image: NDArray[np.generic], settings: DetectSettings = DetectSe
     need = np.maximum(contrast, K_PEAK * back.at(back.noise, ct.box_centre[idx, 0], ct.box_centre[idx, 1]))
     look = idx if idx.size > settings.max_candidates else idx[need > contrast]
     bright = np.full(n, np.inf)
-    bright[look] = box_peak_kernel(img, box, look) - back.at(back.level, ct.box_centre[look, 0],
-                                                             ct.box_centre[look, 1])
+    bright[look] = box_peak_kernel(img, box, look) - back.at(back.level, ct.box_centre[look, 0], ct.box_centre[look, 1])
     faint = np.zeros(n, dtype=bool)
     faint[idx] = bright[idx] < EARLY_CONTRAST * need
     # the hosts claim their rings' pieces, then the rest are measured. A bound on the work whatever
@@ -537,8 +634,11 @@ def detect_blobs(image: NDArray[np.generic], settings: DetectSettings = DetectSe
     host_of, near, n_pairs, n_visits = _neighbours(ct, a, host & query, disk_like, query, img.shape)
     rest = query & ~cut & (host_of < 0)
     measured = _brightest(rest, bright, settings.max_candidates)
-    reason = np.select([cut, small, big, (host_of >= 0), long, faint, ~query | (rest & ~measured)],
-                       [_CUT_OFF, _TOO_SMALL, _TOO_BIG, _RING, _MISSHAPEN, _LOW_CONTRAST, _TOO_MANY], -1)
+    reason = np.select(
+        [cut, small, big, (host_of >= 0), long, faint, ~query | (rest & ~measured)],
+        [_CUT_OFF, _TOO_SMALL, _TOO_BIG, _RING, _MISSHAPEN, _LOW_CONTRAST, _TOO_MANY],
+        -1,
+    )
 
     todo = (reason < 0).nonzero()[0]
     radius, own, limited = _windows(ct, todo, near, img.shape, settings.window_px)
@@ -552,15 +652,21 @@ def detect_blobs(image: NDArray[np.generic], settings: DetectSettings = DetectSe
     rej = (reason >= 0).nonzero()[0]
     ringed = np.zeros(reason.size, dtype=bool)
     ringed[host_of[host_of >= 0]] = True
-    work = DetectWork(n, int(query.sum()), int(todo.size), n_pairs, n_visits, float(np.median(back.tiles)),
-                      float(back.tiles.max()))
-    return (_blobs(meas, (wr < 0).nonzero()[0], sigma, fill, ringed[todo]),
-            Rejections(reason[rej], box[rej], centre[rej], work))
+    work = DetectWork(
+        n, int(query.sum()), int(todo.size), n_pairs, n_visits, float(np.median(back.tiles)), float(back.tiles.max())
+    )
+    return (
+        _blobs(meas, (wr < 0).nonzero()[0], sigma, fill, ringed[todo]),
+        Rejections(reason[rej], box[rej], centre[rej], work),
+    )
 
 
-def measure_windows(image: NDArray[np.generic], uv_predicted: NDArray[np.float64],
-                    half_size_px: int | NDArray[np.intp],
-                    settings: DetectSettings = DetectSettings()) -> tuple[Blobs, NDArray[np.intp]]:
+def measure_windows(
+    image: NDArray[np.generic],
+    uv_predicted: NDArray[np.float64],
+    half_size_px: int | NDArray[np.intp],
+    settings: DetectSettings = DetectSettings(),
+) -> tuple[Blobs, NDArray[np.intp]]:
     """Measure the one bright disk in a small window around each predicted position.
 
     The measurement of :func:`detect_blobs` (a window is the circle of radius

@@ -142,7 +142,7 @@ def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff):
         if o < 0:
             n_sat[i], edge[i] = _window(img, v0, u0, img, v0, u0, h, seg[i], full, w, wi, sums, rb, ru, rv, out, i)
         else:
-            P = buf[o:o + s * s].reshape(s, s)
+            P = buf[o : o + s * s].reshape(s, s)
             n_sat[i], edge[i] = _window(P, 0, 0, img, v0, u0, h, seg[i], full, w, wi, sums, rb, ru, rv, out, i)
     return out, n_sat, edge
 
@@ -158,7 +158,7 @@ def _window(P, pv, ph, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, 
     # -- the peak and the saturated pixels, of the image's values
     pk = img[v0, u0]
     for a in range(s):
-        seg_row = img[v0 + a, u0:u0 + s]  # from 0: vectorises (see the moments)
+        seg_row = img[v0 + a, u0 : u0 + s]  # from 0: vectorises (see the moments)
         for t in range(s):
             pk = max(pk, seg_row[t])
     peak = float(pk)
@@ -237,7 +237,7 @@ def _window(P, pv, ph, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, 
         q0 = q1 = q2 = q3 = q4 = 0.0
         wa = w[a]
         # a slice indexed from 0: the compiler then knows the indices are not negative and vectorises
-        seg_row = P[pv + a, ph + h - wa:ph + h + wa + 1]
+        seg_row = P[pv + a, ph + h - wa : ph + h + wa + 1]
         for t in range(2 * wa + 1):
             du = float(t - wa)
             p = seg_row[t] - b0
@@ -328,7 +328,7 @@ def _window(P, pv, ph, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, 
             dv = float(a - h)
             row0, row1 = k0 + k2 * dv + k5 * dv * dv, k1 + k4 * dv
             lo, hi = h - w[a], h + w[a]
-            seg_row = P[pv + a, ph + lo:ph + hi + 1]
+            seg_row = P[pv + a, ph + lo : ph + hi + 1]
             for b in range(lo):  # outside the circle the pixels count as zero
                 du = float(b - h)
                 mis += min(max(row0 + du * (row1 + k3 * du), 0.0), level)
@@ -345,8 +345,9 @@ def _window(P, pv, ph, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, 
     out[FLUX, i], out[LEVEL, i], out[PEAK, i] = S, level, peak
     out[BACKGROUND, i], out[SB2, i] = b0 + slope_c, sb2
     out[K_SHOT, i] = _maximum(core_var - sb2, 0.0) / level
-    out[VAR_BASE, i] = 0.5 * sb2 * (2.0 * (a2 * a2 / ruu_used - a2)
-                                    + (uc * uc + vc * vc) * (a0 * a0 / m_used - a0)) / (S * S)
+    out[VAR_BASE, i] = (
+        0.5 * sb2 * (2.0 * (a2 * a2 / ruu_used - a2) + (uc * uc + vc * vc) * (a0 * a0 / m_used - a0)) / (S * S)
+    )
     out[VAR_PER_K, i], out[MISMATCH, i] = half_tr / S, mismatch
     out[NOISE_BG, i] = np.sqrt(2.0 / np.pi * sb2) * _maximum(a0 - area, 0.0) / level
     out[M3SQ, i], out[KURT, i], out[KURT_MODEL, i] = m3sq, kurt, kurt_model
@@ -403,8 +404,9 @@ def assess_kernel(out, n_sat, edge, usable, contrast, limits, codes):
         area = S / level
         sigma[i] = np.sqrt(out[VAR_BASE, i] + k * out[VAR_PER_K, i])
         tr, area_e = 2.0 * out[VAR_PER_K, i] * S, np.pi * a * b
-        mis = _maximum(out[MISMATCH, i] - out[NOISE_BG, i] - np.sqrt(2.0 / np.pi * (sb2 + k * level)) * area / level,
-                       0.0)
+        mis = _maximum(
+            out[MISMATCH, i] - out[NOISE_BG, i] - np.sqrt(2.0 / np.pi * (sb2 + k * level)) * area / level, 0.0
+        )
         fill[i] = f = _nan_to_num((area + area_e - mis) / (area + area_e + mis))
         # pixel noise through the centred monomials (c0..c8 the window's sums, m the variance per axis)
         c0, c2, c4, c22 = out[SUMS, i], out[SUMS + 1, i], out[SUMS + 2, i], out[SUMS + 3, i]
@@ -421,11 +423,16 @@ def assess_kernel(out, n_sat, edge, usable, contrast, limits, codes):
         # a disk's flux over its plateau is its ellipse's area; a ring, a glyph or a hollow blob has
         # a dim centre, so its "area" is many times the moments' (the blur estimate stops at 0)
         ratio_max = ratio_flat if b >= min_b else ratio_small
-        shape_ok = (b * max_aspect >= a and f >= min_fill and out[FLAT_TOP, i] >= min_flat
-                    and area <= ratio_max * np.pi * a * b
-                    and np.sqrt(out[M3SQ, i]) / (2.0 * tr) <= sig0 * asym_noise + floor0
-                    and abs(out[KURT, i] - kap) <= sig1 * kurt_noise + floor1
-                    and np.isfinite(out[0, i]) and np.isfinite(out[1, i]))
+        shape_ok = (
+            b * max_aspect >= a
+            and f >= min_fill
+            and out[FLAT_TOP, i] >= min_flat
+            and area <= ratio_max * np.pi * a * b
+            and np.sqrt(out[M3SQ, i]) / (2.0 * tr) <= sig0 * asym_noise + floor0
+            and abs(out[KURT, i] - kap) <= sig1 * kurt_noise + floor1
+            and np.isfinite(out[0, i])
+            and np.isfinite(out[1, i])
+        )
         reason[i] = levels[i] if levels[i] >= 0 else (-1 if shape_ok else codes[4])
     return reason, sigma, fill
 
@@ -440,15 +447,30 @@ def warm_up() -> None:
     placed = np.ones(2, dtype=np.bool_)
     buf = img[10:23, 10:23].astype(np.float32).ravel()
     seg = np.full(2, 10.0)
-    out, n_sat, edge = measure_windows_kernel(img, c, c, half, placed, seg, 255.0, buf,
-                                              np.array([-1, 0], dtype=np.intp))
+    out, n_sat, edge = measure_windows_kernel(
+        img, c, c, half, placed, seg, 255.0, buf, np.array([-1, 0], dtype=np.intp)
+    )
     limits = np.array([6, 5000, 4, 0.6, 2, 2.5, 0.4, 3, 4, 0.015, 0.05, 1.3, 2.5])
     assess_kernel(out, n_sat, edge, placed, 2 * seg, limits, np.arange(5, dtype=np.intp))
     contour_kernel.warm_up()
     noise_kernel.warm_up()
     centre, flags = np.array([[1.0, 1.0], [9.0, 1.0]]), np.ones(2, dtype=np.bool_)
     box = np.array([[0, 0, 2, 2], [8, 0, 10, 2]], dtype=np.intp)
-    crowd_kernel.neighbours_kernel(box, centre, np.ones((2, 3)), np.ones((2, 2), dtype=np.intp),
-                                   np.ones(2, dtype=np.intp), np.ones(2), flags, flags, flags, 2.0, 3.2, 0.4, 16, 16)
+    crowd_kernel.neighbours_kernel(
+        box,
+        centre,
+        np.ones((2, 3)),
+        np.ones((2, 2), dtype=np.intp),
+        np.ones(2, dtype=np.intp),
+        np.ones(2),
+        flags,
+        flags,
+        flags,
+        2.0,
+        3.2,
+        0.4,
+        16,
+        16,
+    )
     own = np.array([[0.0, 0.0, 0.1, 0.0, 0.1], [np.nan] * 5])
     crowd_kernel.mask_windows_kernel(img, c, c, half, np.array([0], dtype=np.intp), own, seg)

@@ -146,8 +146,9 @@ def sensor_from_ideal_kernel(target, K1, K2, K3, P1, P2, B1, B2, max_iter):
     n = target.shape[0]
     out = np.empty((n, 2))
     for i in range(n):
-        out[i, 0], out[i, 1] = _sensor_from_ideal_point(target[i, 0], target[i, 1], K1, K2, K3, P1, P2, B1, B2,
-                                                        max_iter)
+        out[i, 0], out[i, 1] = _sensor_from_ideal_point(
+            target[i, 0], target[i, 1], K1, K2, K3, P1, P2, B1, B2, max_iter
+        )
     return out
 
 
@@ -218,8 +219,11 @@ def is_rigid_kernel(T, tol):
             d = T[0, i] * T[0, j] + T[1, i] * T[1, j] + T[2, i] * T[2, j] - (1.0 if i == j else 0.0)
             if abs(d) > tol:
                 return False
-    det = (T[0, 0] * (T[1, 1] * T[2, 2] - T[1, 2] * T[2, 1]) - T[0, 1] * (T[1, 0] * T[2, 2] - T[1, 2] * T[2, 0])
-           + T[0, 2] * (T[1, 0] * T[2, 1] - T[1, 1] * T[2, 0]))
+    det = (
+        T[0, 0] * (T[1, 1] * T[2, 2] - T[1, 2] * T[2, 1])
+        - T[0, 1] * (T[1, 0] * T[2, 2] - T[1, 2] * T[2, 0])
+        + T[0, 2] * (T[1, 0] * T[2, 1] - T[1, 1] * T[2, 0])
+    )
     return det > 0 and abs(T[3, 0]) <= tol and abs(T[3, 1]) <= tol and abs(T[3, 2]) <= tol and abs(T[3, 3] - 1) <= tol
 
 
@@ -244,8 +248,9 @@ def project_kernel(R, t, xyz, c, K1, K2, K3, P1, P2, B1, B2, x0, y0, pixel_u, pi
         xb, yb = _sensor_from_ideal_point(c * X / Z, c * Y / Z, K1, K2, K3, P1, P2, B1, B2, 20)
         u, v = (xb + x0) / pixel_u + cu, (yb + y0) / pixel_v + cv
         uv[i, 0], uv[i, 1] = u, v
-        inside[i] = (u >= -0.5 + margin and u <= width - 0.5 - margin
-                     and v >= -0.5 + margin and v <= height - 0.5 - margin)
+        inside[i] = (
+            u >= -0.5 + margin and u <= width - 0.5 - margin and v >= -0.5 + margin and v <= height - 0.5 - margin
+        )
     return uv, depth, inside
 
 
@@ -538,7 +543,15 @@ def warm_up() -> None:
     scatter_kernel(p, xy)
     sensor_from_ideal_kernel(xy, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20)
     correction_kernel(xy[:, 0].copy(), xy[:, 1].copy(), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, True)
-    eccentricity_kernel(np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]), p, R, t, 12.0, np.full(4, 3.0),
-                        np.repeat(np.eye(2)[None], 4, axis=0))
+    eccentricity_kernel(
+        np.array([[1.0, 0.0, 0.0]]),
+        np.array([[0.0, 1.0, 0.0]]),
+        p,
+        R,
+        t,
+        12.0,
+        np.full(4, 3.0),
+        np.repeat(np.eye(2)[None], 4, axis=0),
+    )
     match_kernel(xy, xy + 1.0, np.ones(4, dtype=np.bool_), 4.0)
     project_kernel(R, t, p, 12.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0067, 0.0067, 1300, 1030, 0.0)

@@ -172,8 +172,7 @@ def _poses(T: ArrayLike, name: str) -> Array:
         k = int(np.flatnonzero(bad)[0])
         raise SolveError(
             Reason.bad_input,
-            f"{name}[{k}] is not a rigid transform "
-            "(rotation block not orthonormal or last row not 0 0 0 1).",
+            f"{name}[{k}] is not a rigid transform (rotation block not orthonormal or last row not 0 0 0 1).",
             {"index": k},
         )
     return T
@@ -250,8 +249,7 @@ def _require_motion(q: dict[str, float]) -> list[str]:
     if n < MIN_SAMPLES:
         raise SolveError(
             Reason.poor_motion,
-            f"Hand-eye calibration needs at least {MIN_SAMPLES} samples (two robot motions), "
-            f"got {n}.",
+            f"Hand-eye calibration needs at least {MIN_SAMPLES} samples (two robot motions), got {n}.",
             dict(q),
         )
     if q["max_rotation_deg"] < MIN_ROTATION_DEG:
@@ -273,8 +271,7 @@ def _require_motion(q: dict[str, float]) -> list[str]:
     warnings = []
     if n < ADVISED_SAMPLES:
         warnings.append(
-            f"Only {n} samples; use {ADVISED_SAMPLES} or more so that the result and its sigmas "
-            "can be trusted."
+            f"Only {n} samples; use {ADVISED_SAMPLES} or more so that the result and its sigmas can be trusted."
         )
     if q["max_rotation_deg"] < ADVISED_ROTATION_DEG:
         warnings.append(
@@ -344,9 +341,7 @@ def tsai_lenz(T_base_flange: ArrayLike, T_field_camera: ArrayLike) -> Array:
     p_prime = np.linalg.lstsq(_skew(Pg + Pc).reshape(-1, 3), (Pc - Pg).reshape(-1), rcond=None)[0]
     Pcg = 2.0 * p_prime / np.sqrt(1.0 + p_prime @ p_prime)
     n2 = Pcg @ Pcg
-    R_small = (1.0 - n2 / 2.0) * np.eye(3) + 0.5 * (
-        np.outer(Pcg, Pcg) + np.sqrt(max(4.0 - n2, 0.0)) * _skew(Pcg)
-    )
+    R_small = (1.0 - n2 / 2.0) * np.eye(3) + 0.5 * (np.outer(Pcg, Pcg) + np.sqrt(max(4.0 - n2, 0.0)) * _skew(Pcg))
     R_X = Rotation.from_matrix(R_small @ R0).as_matrix()  # re-orthonormalise
 
     lhs = (R_A - np.eye(3)).reshape(-1, 3)
@@ -375,17 +370,11 @@ def base_field_from_flange_camera(
     P, C = _check_pair(T_base_flange, T_field_camera)
     X = np.asarray(T_flange_camera, dtype=np.float64)
     R_Z_j = P[:, :3, :3] @ X[:3, :3] @ np.transpose(C[:, :3, :3], (0, 2, 1))
-    t_Z_j = (
-        np.einsum("mij,j->mi", P[:, :3, :3], X[:3, 3])
-        + P[:, :3, 3]
-        - np.einsum("mij,mj->mi", R_Z_j, C[:, :3, 3])
-    )
+    t_Z_j = np.einsum("mij,j->mi", P[:, :3, :3], X[:3, 3]) + P[:, :3, 3] - np.einsum("mij,mj->mi", R_Z_j, C[:, :3, 3])
     return make_T(Rotation.from_matrix(R_Z_j).mean().as_matrix(), t_Z_j.mean(axis=0))
 
 
-def robot_world_closed_form(
-    T_base_flange: ArrayLike, T_field_camera: ArrayLike
-) -> tuple[Array, Array]:
+def robot_world_closed_form(T_base_flange: ArrayLike, T_field_camera: ArrayLike) -> tuple[Array, Array]:
     """X by :func:`tsai_lenz`, then Z = T_base_field by :func:`base_field_from_flange_camera`.
 
     Parameters
@@ -404,9 +393,7 @@ def robot_world_closed_form(
 # -- joint refinement --------------------------------------------------------------
 
 
-def _residual_covariance(
-    X: Array, sigma_robot: tuple[float, float], sigma_camera: tuple[float, float]
-) -> Array:
+def _residual_covariance(X: Array, sigma_robot: tuple[float, float], sigma_camera: tuple[float, float]) -> Array:
     """6x6 covariance of one sample's residual ``inv(Z C) P X`` (rotvec rad, translation mm).
 
     ``sigma_*`` are (position mm, rotation rad). The robot's flange perturbation

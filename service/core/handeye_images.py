@@ -95,7 +95,7 @@ def refine_handeye_on_images(
         X = X0 @ _exp(x[0:6])
         Z = _exp(x[6:12]) @ Z0
         Z_inv = inv_T(Z)
-        T_cf = [inv_T(Z_inv @ P[i] @ _exp(x[12 + 6 * i: 18 + 6 * i]) @ X) for i in range(M)]
+        T_cf = [inv_T(Z_inv @ P[i] @ _exp(x[12 + 6 * i : 18 + 6 * i]) @ X) for i in range(M)]
         return X, Z, T_cf
 
     def residuals(x: Array) -> Array:
@@ -111,8 +111,9 @@ def refine_handeye_on_images(
 
     n_res = 2 * sum(n_obs) + 6 * M
     # 12 + 6 M unknowns (~70): a dense Levenberg-Marquardt step is cheaper than bookkeeping sparsity
-    sol = least_squares(residuals, np.zeros(n_par), method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12,
-                        max_nfev=50 * n_par)
+    sol = least_squares(
+        residuals, np.zeros(n_par), method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12, max_nfev=50 * n_par
+    )
     X, Z, T_cf = poses(sol.x)
     J = np.asarray(sol.jac)
     dof = max(1, n_res - n_par)
@@ -128,7 +129,7 @@ def refine_handeye_on_images(
     r = sol.fun[: 2 * sum(n_obs)] * sigma_px
     rms, k = [], 0
     for n in n_obs:
-        rms.append(float(np.sqrt(np.mean(r[k: k + 2 * n] ** 2) * 2)))
+        rms.append(float(np.sqrt(np.mean(r[k : k + 2 * n] ** 2) * 2)))
         k += 2 * n
     return ImageHandEyeResult(
         T_flange_camera=X,

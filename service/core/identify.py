@@ -72,15 +72,23 @@ def match_predicted(
     """
     rows = np.asarray(rows, dtype=np.int64)
     free = np.ones(len(blob_uv), bool) if taken is None else ~np.asarray(taken, dtype=bool)
-    cand = match_kernel(np.require(uv_predicted, np.float64, ["C", "W"]).reshape(-1, 2),
-                        np.require(blob_uv, np.float64, ["C", "W"]).reshape(-1, 2), free, float(tolerance_px))
+    cand = match_kernel(
+        np.require(uv_predicted, np.float64, ["C", "W"]).reshape(-1, 2),
+        np.require(blob_uv, np.float64, ["C", "W"]).reshape(-1, 2),
+        free,
+        float(tolerance_px),
+    )
     ok = cand >= 0
     return Matches(rows[ok], cand[ok])
 
 
 @overload
 def project_field(
-    camera: BrownFraser, field: Field, T_field_camera: Array, margin_px: float = ..., *,
+    camera: BrownFraser,
+    field: Field,
+    T_field_camera: Array,
+    margin_px: float = ...,
+    *,
     with_depth: Literal[False] = ...,
 ) -> tuple[IntArray, Array]: ...
 
@@ -101,10 +109,25 @@ def project_field(
     """
     T = np.asarray(T_field_camera, dtype=np.float64)
     uv, depth, inside = project_kernel(
-        np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), field.xyz, float(camera.c_mm),
-        float(camera.K1), float(camera.K2), float(camera.K3), float(camera.P1), float(camera.P2), float(camera.B1),
-        float(camera.B2), float(camera.x0_mm), float(camera.y0_mm), float(camera.pixel_size_mm[0]),
-        float(camera.pixel_size_mm[1]), int(camera.width), int(camera.height), float(margin_px))
+        np.ascontiguousarray(T[:3, :3]),
+        np.ascontiguousarray(T[:3, 3]),
+        field.xyz,
+        float(camera.c_mm),
+        float(camera.K1),
+        float(camera.K2),
+        float(camera.K3),
+        float(camera.P1),
+        float(camera.P2),
+        float(camera.B1),
+        float(camera.B2),
+        float(camera.x0_mm),
+        float(camera.y0_mm),
+        float(camera.pixel_size_mm[0]),
+        float(camera.pixel_size_mm[1]),
+        int(camera.width),
+        int(camera.height),
+        float(margin_px),
+    )
     rows = np.flatnonzero(inside)
     if with_depth:
         return rows, uv[rows], depth[rows]
@@ -143,15 +166,28 @@ def eccentricity_px(
         ex /= np.linalg.norm(ex, axis=1, keepdims=True)
         ey = np.stack([ny * ex[:, 2] - nz * ex[:, 1], nz * ex[:, 0] - nx * ex[:, 2], nx * ex[:, 1] - ny * ex[:, 0]], 1)
         # writable C arrays: one compiled kernel for every way the inputs come
-        ex, ey = (np.require(a, np.float64, ['C', 'W']) for a in (ex, ey))
+        ex, ey = (np.require(a, np.float64, ["C", "W"]) for a in (ex, ey))
     T = np.asarray(T_field_camera, dtype=np.float64)
     R_camera_field = np.ascontiguousarray(T[:3, :3].T)
     t_camera_field = -R_camera_field @ T[:3, 3]
-    radius = np.require(np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (n,)), np.float64, ['C', 'W'])
+    radius = np.require(np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (n,)), np.float64, ["C", "W"])
     # the pixels' whitening (inverse ideal-from-pixel Jacobian) in one compiled pass, as the resection gets it
     _, W = whitened_ideal_kernel(
-        np.require(uv, np.float64, ['C', 'W']), (camera.width - 1) / 2.0, (camera.height - 1) / 2.0,
-        *map(float, camera.pixel_size_mm), float(camera.x0_mm), float(camera.y0_mm),
-        *map(float, (camera.K1, camera.K2, camera.K3, camera.P1, camera.P2, camera.B1, camera.B2)))
-    return eccentricity_kernel(ex, ey, np.require(p_field, np.float64, ['C', 'W']), R_camera_field, t_camera_field,
-                               float(camera.c_mm), radius, W)
+        np.require(uv, np.float64, ["C", "W"]),
+        (camera.width - 1) / 2.0,
+        (camera.height - 1) / 2.0,
+        *map(float, camera.pixel_size_mm),
+        float(camera.x0_mm),
+        float(camera.y0_mm),
+        *map(float, (camera.K1, camera.K2, camera.K3, camera.P1, camera.P2, camera.B1, camera.B2)),
+    )
+    return eccentricity_kernel(
+        ex,
+        ey,
+        np.require(p_field, np.float64, ["C", "W"]),
+        R_camera_field,
+        t_camera_field,
+        float(camera.c_mm),
+        radius,
+        W,
+    )

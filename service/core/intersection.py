@@ -157,13 +157,9 @@ class IntersectionResult:
         return np.sqrt(np.diagonal(self.covariance, axis1=1, axis2=2))
 
 
-def _stack_observations(
-    rig: Rig, uv_per_camera: Sequence[ArrayLike]
-) -> tuple[Array, NDArray[np.bool_]]:
+def _stack_observations(rig: Rig, uv_per_camera: Sequence[ArrayLike]) -> tuple[Array, NDArray[np.bool_]]:
     if len(uv_per_camera) != rig.n_cameras:
-        raise ValueError(
-            f"need one (N, 2) array per camera ({rig.n_cameras}), got {len(uv_per_camera)}"
-        )
+        raise ValueError(f"need one (N, 2) array per camera ({rig.n_cameras}), got {len(uv_per_camera)}")
     uv = np.stack([np.asarray(a, dtype=np.float64) for a in uv_per_camera])
     if uv.ndim != 3 or uv.shape[2] != 2:
         raise ValueError(f"every uv array must be (N, 2) with the same N, got {uv.shape[1:]}")
@@ -384,9 +380,7 @@ def epipolar_matches(
     lines = m0 @ E.T  # (N, 3): l . (x/c, y/c, 1) = 0 in the other image
     norm = np.linalg.norm(lines[:, :2], axis=1)
     if np.any(norm == 0):
-        raise SolveError(
-            Reason.degenerate_geometry, "the rig has no baseline between these cameras."
-        )
+        raise SolveError(Reason.degenerate_geometry, "the rig has no baseline between these cameras.")
     n = lines[:, :2] / norm[:, None]
     dist_mm = (x1 @ lines[:, :2].T + cam1.c_mm * lines[:, 2]).T / norm[:, None]  # (N, M)
     # mm -> px perpendicular to the line: |J^T n| is how far the ideal point moves per pixel.
@@ -443,9 +437,7 @@ def match_rig_images(
     list of K arrays (N, 2) float, px, N = len(uv_per_image[0])
     """
     if len(uv_per_image) != rig.n_cameras:
-        raise ValueError(
-            f"need one target list per camera ({rig.n_cameras}), got {len(uv_per_image)}"
-        )
+        raise ValueError(f"need one target list per camera ({rig.n_cameras}), got {len(uv_per_image)}")
     uv0 = np.asarray(uv_per_image[0], dtype=np.float64).reshape(-1, 2)
     out = [uv0.copy()]
     for k in range(1, rig.n_cameras):
@@ -540,9 +532,7 @@ def pose_from_intersection(
         :func:`service.core.similarity.rigid_transform_with_covariance`.
     """
     f = np.asarray(p_field, dtype=np.float64)
-    inter = intersect_rays(
-        rig, uv_per_camera, sigma_px=sigma_px, min_ray_angle_deg=min_ray_angle_deg
-    )
+    inter = intersect_rays(rig, uv_per_camera, sigma_px=sigma_px, min_ray_angle_deg=min_ray_angle_deg)
     if f.shape != inter.p_master.shape:
         raise ValueError(f"p_field must have shape {inter.p_master.shape}, got {f.shape}")
     n_ok = int(np.count_nonzero(inter.valid & np.all(np.isfinite(f), axis=1)))

@@ -90,10 +90,14 @@ class _Layout:
         v = dict(zip(self.names, delta, strict=True))
         nom = self.nominal
         rows = {k: np.array([v.get(f"{k}{i}", 0.0) for i in range(1, 7)]) for k in _DH_KINDS}
-        T_b = make_T(Rotation.from_rotvec([v.get(n, 0.0) for n in BASE_NAMES[3:]]).as_matrix(),
-                     [v.get(n, 0.0) for n in BASE_NAMES[:3]])
-        T_t = make_T(Rotation.from_rotvec([v.get(n, 0.0) for n in TOOL_NAMES[3:]]).as_matrix(),
-                     [v.get(n, 0.0) for n in TOOL_NAMES[:3]])
+        T_b = make_T(
+            Rotation.from_rotvec([v.get(n, 0.0) for n in BASE_NAMES[3:]]).as_matrix(),
+            [v.get(n, 0.0) for n in BASE_NAMES[:3]],
+        )
+        T_t = make_T(
+            Rotation.from_rotvec([v.get(n, 0.0) for n in TOOL_NAMES[3:]]).as_matrix(),
+            [v.get(n, 0.0) for n in TOOL_NAMES[:3]],
+        )
         return replace(
             nom,
             a_mm=nom.a_mm + rows["a"],
@@ -123,8 +127,9 @@ def _residual(layout: _Layout, delta: Array, q: Array, measured: Array, rot_weig
     return np.hstack([r_pos, rot_weight_mm * R_err.as_rotvec()]).ravel()
 
 
-def _jacobian(layout: _Layout, delta: Array, q: Array, measured: Array, rot_weight_mm: float,
-              columns: NDArray[np.intp]) -> Array:
+def _jacobian(
+    layout: _Layout, delta: Array, q: Array, measured: Array, rot_weight_mm: float, columns: NDArray[np.intp]
+) -> Array:
     """Central-difference Jacobian of the residuals w.r.t. ``columns`` of ``delta``, internal units.
 
     Numeric because the DH chain and the rotation-vector residual make the
@@ -135,8 +140,10 @@ def _jacobian(layout: _Layout, delta: Array, q: Array, measured: Array, rot_weig
     for c, j in enumerate(columns):
         h = np.zeros_like(delta)
         h[j] = FD_STEP / scale[j]
-        J[:, c] = (_residual(layout, delta + h, q, measured, rot_weight_mm)
-                   - _residual(layout, delta - h, q, measured, rot_weight_mm)) / (2.0 * FD_STEP)
+        J[:, c] = (
+            _residual(layout, delta + h, q, measured, rot_weight_mm)
+            - _residual(layout, delta - h, q, measured, rot_weight_mm)
+        ) / (2.0 * FD_STEP)
     return J
 
 
@@ -230,8 +237,11 @@ class KinematicIdResult:
 
     def as_dict(self) -> dict[str, tuple[float, float]]:
         """``{name: (delta, sigma)}`` of the identified (free) parameters."""
-        return {n: (float(d), float(s)) for n, d, s in zip(self.names, self.delta, self.sigma, strict=True)
-                if n not in self.fixed}
+        return {
+            n: (float(d), float(s))
+            for n, d, s in zip(self.names, self.delta, self.sigma, strict=True)
+            if n not in self.fixed
+        }
 
     def predict(self, q_rad: ArrayLike) -> Array:
         """Where the corrected model puts the measured point: (M, 3) mm for ``q_rad`` (M, 6) rad, or (3,).
@@ -348,13 +358,11 @@ def identify_kinematics(
         names += TOOL_NAMES if with_orientation else TOOL_NAMES[:3]
     unknown = sorted(set(fixed) - set(names))
     if unknown:
-        raise SolveError(Reason.bad_input, f"cannot fix unknown or unestimated parameters {unknown}",
-                         {"known": names})
+        raise SolveError(Reason.bad_input, f"cannot fix unknown or unestimated parameters {unknown}", {"known": names})
     # base and tool first so that the greedy selection keeps them and freezes the DH rows they absorb
     order = [n for n in names if n.startswith(("base", "tool"))] + dh_parameter_names()
     user_fixed = set(fixed)
-    layout = _Layout(nominal, tuple(order), np.array([n not in user_fixed for n in order]),
-                     with_orientation, point)
+    layout = _Layout(nominal, tuple(order), np.array([n not in user_fixed for n in order]), with_orientation, point)
     P = len(order)
     zero = np.zeros(P)
 
@@ -403,12 +411,13 @@ def identify_kinematics(
         return _jacobian(layout, d, q, obs, rotation_weight_mm, cols)
 
     r0 = fun(np.zeros(cols.size))
-    sol = least_squares(fun, np.zeros(cols.size), jac=jac, method="lm", xtol=1e-12, ftol=1e-12,
-                        max_nfev=max_nfev)
+    sol = least_squares(fun, np.zeros(cols.size), jac=jac, method="lm", xtol=1e-12, ftol=1e-12, max_nfev=max_nfev)
     if sol.status <= 0:
-        raise SolveError(Reason.no_convergence,
-                         f"kinematic identification did not converge in {sol.nfev} evaluations ({sol.message})",
-                         {"n_eval": int(sol.nfev)})
+        raise SolveError(
+            Reason.no_convergence,
+            f"kinematic identification did not converge in {sol.nfev} evaluations ({sol.message})",
+            {"n_eval": int(sol.nfev)},
+        )
     delta = zero.copy()
     delta[cols] = sol.x / scale
 

@@ -152,8 +152,17 @@ def _check_pose(T_field_camera: ArrayLike) -> Array:
 # Both quantiles have closed forms.
 
 
-def _error(status: int, n: int, min_keep: int, max_iter: int, max_sigma_px: float, inliers: NDArray[np.bool_],
-           n_in: int, sigma0: float, behind: NDArray[np.bool_]) -> SolveError:
+def _error(
+    status: int,
+    n: int,
+    min_keep: int,
+    max_iter: int,
+    max_sigma_px: float,
+    inliers: NDArray[np.bool_],
+    n_in: int,
+    sigma0: float,
+    behind: NDArray[np.bool_],
+) -> SolveError:
     """The ``SolveError`` of a failed :func:`~service.core.resection_kernel.resect_kernel`."""
     if status == START_BEHIND:
         return SolveError(
@@ -169,14 +178,11 @@ def _error(status: int, n: int, min_keep: int, max_iter: int, max_sigma_px: floa
     if status == TOO_MANY_GROSS:
         return SolveError(
             Reason.too_few_targets,
-            f"Too many gross errors: rejecting another point would leave fewer "
-            f"than {min_keep} of {n}.",
+            f"Too many gross errors: rejecting another point would leave fewer than {min_keep} of {n}.",
             {"rejected": np.flatnonzero(~inliers).tolist(), "n_targets": n},
         )
     if status == NO_CONVERGENCE:
-        return SolveError(
-            Reason.no_convergence, f"The resection did not converge in {max_iter} iterations."
-        )
+        return SolveError(Reason.no_convergence, f"The resection did not converge in {max_iter} iterations.")
     if status == TOO_FEW_AGREE:
         return SolveError(
             Reason.too_few_targets,
@@ -258,21 +264,37 @@ def resect(
         ``no_convergence``, ``bad_input`` (non-finite values).
     """
     p, q = check_observations(p_field, uv)
-    p, q = (np.require(a, np.float64, ['C', 'W']) for a in (p, q))  # the one array type the kernels know
+    p, q = (np.require(a, np.float64, ["C", "W"]) for a in (p, q))  # the one array type the kernels know
     n, c = len(p), float(camera.c_mm)
     # camera.ideal_from_pixel and the inverse of camera.ideal_from_pixel_jacobian in one compiled pass:
     # as two array pipelines they cost a sixth of an ROI frame's resection
     xy, W = whitened_ideal_kernel(
-        q, (camera.width - 1) / 2.0, (camera.height - 1) / 2.0, *map(float, camera.pixel_size_mm), float(camera.x0_mm),
-        float(camera.y0_mm), *map(float, (camera.K1, camera.K2, camera.K3, camera.P1, camera.P2, camera.B1, camera.B2)))
+        q,
+        (camera.width - 1) / 2.0,
+        (camera.height - 1) / 2.0,
+        *map(float, camera.pixel_size_mm),
+        float(camera.x0_mm),
+        float(camera.y0_mm),
+        *map(float, (camera.K1, camera.K2, camera.K3, camera.P1, camera.P2, camera.B1, camera.B2)),
+    )
     spread = check_geometry(p, xy)
     nan = np.nan
 
     def adjust(T: Array) -> tuple:
         return resect_kernel(
-            T, p, xy, W, c, int(max_iter), bool(reject_outliers), nan if sigma_px is None else float(sigma_px),
-            float(max_sigma_px), nan if critical_value is None else float(critical_value), SNOOPING_ALPHA,
-            SNOOPING_SIGMA_FLOOR_PX)
+            T,
+            p,
+            xy,
+            W,
+            c,
+            int(max_iter),
+            bool(reject_outliers),
+            nan if sigma_px is None else float(sigma_px),
+            float(max_sigma_px),
+            nan if critical_value is None else float(critical_value),
+            SNOOPING_ALPHA,
+            SNOOPING_SIGMA_FLOOR_PX,
+        )
 
     def error(out: tuple) -> SolveError:
         return _error(out[0], n, max(4, -(-n // 2)), max_iter, max_sigma_px, out[3], out[4], out[8], out[12])

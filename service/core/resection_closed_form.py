@@ -303,8 +303,9 @@ def _pose_p3p_consensus(p: Array, n_img: Array, tol: float) -> Array | None:
         tvecs: list[Any] = []
         for sel in chunk:
             try:
-                _, r, t = cv2.solveP3P(np.ascontiguousarray(p[sel]), np.ascontiguousarray(n_img[sel]),
-                                       _EYE3, None, flags=cv2.SOLVEPNP_P3P)
+                _, r, t = cv2.solveP3P(
+                    np.ascontiguousarray(p[sel]), np.ascontiguousarray(n_img[sel]), _EYE3, None, flags=cv2.SOLVEPNP_P3P
+                )
             except cv2.error:  # a degenerate triple (coincident image points): the next one
                 continue
             rvecs.extend(r)

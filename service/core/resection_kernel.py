@@ -37,8 +37,17 @@ from service.core.geometry_kernels import (
 )
 
 #: :func:`resect_kernel`'s outcomes: a solution, or which ``SolveError`` to raise
-(OK, START_BEHIND, NORMAL_SINGULAR, NO_DESCENT, DEGENERATE, TOO_MANY_GROSS, NO_CONVERGENCE, TOO_FEW_AGREE,
- INLIER_BEHIND) = range(9)
+(
+    OK,
+    START_BEHIND,
+    NORMAL_SINGULAR,
+    NO_DESCENT,
+    DEGENERATE,
+    TOO_MANY_GROSS,
+    NO_CONVERGENCE,
+    TOO_FEW_AGREE,
+    INLIER_BEHIND,
+) = range(9)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -98,8 +107,9 @@ def resect_kernel(T, p, xy, W, c, max_iter, reject, sigma_px, max_sigma_px, crit
             # N: the normal matrix of the design A and residuals v it returns, for the snooping
             R, t, it, v, pc, A, N, ss_start, outcome = adjust_kernel(R, t, p, xy, W, c, scale_mm, max_iter)
         else:
-            R, t, it, v, pc, A, N, ss_start, outcome = adjust_kernel(R, t, p[idx], xy[idx], W[idx], c, scale_mm,
-                                                                     max_iter)
+            R, t, it, v, pc, A, N, ss_start, outcome = adjust_kernel(
+                R, t, p[idx], xy[idx], W[idx], c, scale_mm, max_iter
+            )
         if first:
             ss0, first = ss_start, False
         if outcome == BEHIND:
@@ -136,8 +146,16 @@ def resect_kernel(T, p, xy, W, c, max_iter, reject, sigma_px, max_sigma_px, crit
             chi2_crit, f_crit = _critical(f - 2, alpha)
             for i in range(k):
                 if det[i] > 1e-6:  # a point the pose must pass through cannot be tested
-                    score[i] = _score(T2[i], max(omega - T2[i], 0.0) / max(f - 2, 1), sigma_px, max_sigma_px,
-                                      critical_value, chi2_crit, f_crit, floor_px)
+                    score[i] = _score(
+                        T2[i],
+                        max(omega - T2[i], 0.0) / max(f - 2, 1),
+                        sigma_px,
+                        max_sigma_px,
+                        critical_value,
+                        chi2_crit,
+                        f_crit,
+                        floor_px,
+                    )
         worst = np.argmax(score)
         if score[worst] > 1.0:
             # even an unsettled adjustment (slow with large residuals) shows this
@@ -195,8 +213,21 @@ def resect_kernel(T, p, xy, W, c, max_iter, reject, sigma_px, max_sigma_px, crit
             T_out[a, 3] = t[a]
             for b in range(3):
                 T_out[a, b] = R[a, b]
-    return (status, T_out, n_iter, inliers, n_in, r_all, cov, sig, sigma0, np.sqrt(omega / (2 * n_in)), omega, ss0,
-            behind)
+    return (
+        status,
+        T_out,
+        n_iter,
+        inliers,
+        n_in,
+        r_all,
+        cov,
+        sig,
+        sigma0,
+        np.sqrt(omega / (2 * n_in)),
+        omega,
+        ss0,
+        behind,
+    )
 
 
 # -- the closed form's planar case and the input's spread (resection_closed_form) ----------------
@@ -304,8 +335,11 @@ def centre_planar_kernel(p, n_img):
     D[2, 2] = np.linalg.det(U @ Wt)
     R_camera_plane = U @ D @ Wt
     for r in range(3):
-        C_plane = -(R_camera_plane[0, r] * lam * H[0, 2] + R_camera_plane[1, r] * lam * H[1, 2]
-                    + R_camera_plane[2, r] * lam * H[2, 2])
+        C_plane = -(
+            R_camera_plane[0, r] * lam * H[0, 2]
+            + R_camera_plane[1, r] * lam * H[1, 2]
+            + R_camera_plane[2, r] * lam * H[2, 2]
+        )
         for k in range(3):
             C[k] += C_plane * e[r, k]
     for k in range(3):

@@ -147,12 +147,15 @@ class RigCalibration:
 
     def to_dict(self) -> dict[str, Any]:
         """``rig.json``: what :func:`rig_from_dict` (and so :class:`Rig`) needs, plus the quality."""
+
         def r(v: float, nd: int = 6) -> float | None:
             return round(float(v), nd) if np.isfinite(v) else None  # JSON has no NaN
 
         def sigmas(rot: Array, pos: Array) -> dict[str, Any]:
-            return {"rotation_deg": [[r(v, 8) for v in s] for s in rot],
-                    "position_mm": [[r(v) for v in s] for s in pos]}
+            return {
+                "rotation_deg": [[r(v, 8) for v in s] for s in rot],
+                "position_mm": [[r(v) for v in s] for s in pos],
+            }
 
         cams = []
         for cam, sig in zip(self.rig.cameras, self.sigma_interior, strict=True):
@@ -174,8 +177,14 @@ class RigCalibration:
                 "sigma_source": self.sigma_source,
                 "sigma_formal": sigmas(self.sigma_rotation_formal_deg, self.sigma_position_formal_mm),
                 "sigma_jackknife": sigmas(self.sigma_rotation_jackknife_deg, self.sigma_position_jackknife_mm),
-                "cameras": [{"rms_px": r(self.rms_px[k], 5), "n_observations": int(self.n_observations[k]),
-                             "n_rejected": int(self.n_rejected[k])} for k in range(self.rig.n_cameras)],
+                "cameras": [
+                    {
+                        "rms_px": r(self.rms_px[k], 5),
+                        "n_observations": int(self.n_observations[k]),
+                        "n_rejected": int(self.n_rejected[k]),
+                    }
+                    for k in range(self.rig.n_cameras)
+                ],
                 "warnings": list(self.warnings),
                 **self.extra,
             },
@@ -202,8 +211,9 @@ def _start_offsets(T_view: dict[tuple[int, int], Array], n_cam: int) -> list[Arr
     for k in range(1, n_cam):
         rel = [inv_T(T_view[(e, k)]) @ T_view[(e, 0)] for (e, kk) in T_view if kk == k and (e, 0) in T_view]
         if not rel:
-            raise SolveError(Reason.too_few_targets,
-                             f"Camera {k} never sees enough known targets at the same time as camera 0.")
+            raise SolveError(
+                Reason.too_few_targets, f"Camera {k} never sees enough known targets at the same time as camera 0."
+            )
         R = Rotation.from_matrix(np.array([T[:3, :3] for T in rel])).mean().as_matrix()
         out.append(make_T(R, np.mean([T[:3, 3] for T in rel], axis=0)))
     return out
@@ -259,8 +269,10 @@ def calibrate_rig(
         raise ValueError(f"unknown camera parameters {sorted(set(free_interior) - set(free_t))}")
     for im in images:
         if not 0 <= im.camera < K:
-            raise SolveError(Reason.bad_input, f"Image {im.name or im.epoch!r} names camera {im.camera}, "
-                                               f"but the rig has {K} cameras.")
+            raise SolveError(
+                Reason.bad_input,
+                f"Image {im.name or im.epoch!r} names camera {im.camera}, but the rig has {K} cameras.",
+            )
     epochs = list(dict.fromkeys(im.epoch for im in images))
     observed = {t for im in images for t in im.ids}
     ids = [t for t in field.ids if t in observed] + sorted(observed - set(field.index))
@@ -275,8 +287,11 @@ def calibrate_rig(
     T_view: dict[tuple[int, int], Array] = {}
     for j, im in enumerate(images):
         known = [k for k, t in enumerate(im.ids) if t in field.index]
-        T = resect_view(cameras[im.camera], field.xyz[field.indices_of([im.ids[k] for k in known])],
-                        np.asarray(im.uv, dtype=np.float64)[known])
+        T = resect_view(
+            cameras[im.camera],
+            field.xyz[field.indices_of([im.ids[k] for k in known])],
+            np.asarray(im.uv, dtype=np.float64)[known],
+        )
         if T is not None:
             T_view[(int(view_epoch[j]), im.camera)] = T
     if T_master_camera_init is not None:
@@ -340,9 +355,22 @@ def calibrate_rig(
         for b in (datum or Datum()).scale_bars:
             bars.append((index[b.id_a], index[b.id_b], float(b.distance_mm), float(b.sigma_mm)))
     net = NetworkInput(
-        cameras=tuple(cameras), free_interior=tuple(free_t for _ in range(K)), station=station, camera=camera,
-        point=point_a, uv=uv_a, stations=stations_a, offsets=offsets, offsets_free=True, points=p0,
-        point_free=point_free, control=control, bars=tuple(bars), inner=inner, sigma_px=float(sigma_px))
+        cameras=tuple(cameras),
+        free_interior=tuple(free_t for _ in range(K)),
+        station=station,
+        camera=camera,
+        point=point_a,
+        uv=uv_a,
+        stations=stations_a,
+        offsets=offsets,
+        offsets_free=True,
+        points=p0,
+        point_free=point_free,
+        control=control,
+        bars=tuple(bars),
+        inner=inner,
+        sigma_px=float(sigma_px),
+    )
     say(f"adjusting {len(keep_epoch)} epochs of {K} cameras, {len(uv_a)} observations")
     sol = solve_network(net, reject_outliers=reject_outliers, progress=progress)
 
@@ -351,56 +379,83 @@ def calibrate_rig(
     formal = np.zeros((K, 6))
     for k in range(1, K):
         c = model.offset_col0 + 6 * (k - 1)
-        formal[k, :3], formal[k, 3:] = pose_sigmas(sol.offsets[k - 1], sol.Q[c:c + 6, c:c + 6] * s0 * s0)
+        formal[k, :3], formal[k, 3:] = pose_sigmas(sol.offsets[k - 1], sol.Q[c : c + 6, c : c + 6] * s0 * s0)
     jack = np.full((K, 6), np.nan)
     if jackknife and len(keep_epoch) < MIN_JACKKNIFE_EPOCHS:
-        warnings.append(f"only {len(keep_epoch)} epochs: no leave-one-epoch-out check, the sigmas are the formal "
-                        f"ones and miss errors common to an epoch (synchronisation, rig flex)")
+        warnings.append(
+            f"only {len(keep_epoch)} epochs: no leave-one-epoch-out check, the sigmas are the formal "
+            f"ones and miss errors common to an epoch (synchronisation, rig flex)"
+        )
     elif jackknife:
         say(f"leave-one-epoch-out: {len(keep_epoch)} re-adjustments")
         jack = _jackknife_sigmas(net, sol)
         if not np.all(np.isfinite(jack)):
-            warnings.append("a re-adjustment without one epoch failed (a camera seen in that epoch only?): "
-                            "the sigmas are the formal ones and may be optimistic")
+            warnings.append(
+                "a re-adjustment without one epoch failed (a camera seen in that epoch only?): "
+                "the sigmas are the formal ones and may be optimistic"
+            )
     sigma_source, sigma = "formal", formal
     if np.all(np.isfinite(jack)):
         sigma_source, sigma = "max(formal, jackknife)", np.maximum(formal, jack)
         for k in range(1, K):
             ratio = float(np.max(jack[k] / formal[k]))
             if ratio > EPOCH_ERROR_WARN_RATIO:
-                warnings.append(f"camera {k}'s relative orientation scatters between epochs {ratio:.1f}x more than "
-                                f"the image residuals explain (synchronisation, rig flex, unmodelled distortion or "
-                                f"field error?): its sigma is the leave-one-epoch-out one")
+                warnings.append(
+                    f"camera {k}'s relative orientation scatters between epochs {ratio:.1f}x more than "
+                    f"the image residuals explain (synchronisation, rig flex, unmodelled distortion or "
+                    f"field error?): its sigma is the leave-one-epoch-out one"
+                )
     sig_int = []
     for k in range(K):
         sd = {n: 0.0 for n in PARAMETER_NAMES}
         cols = model.int_cols[k]
         sd.update({n: float(v) for n, v in zip(free_t, np.sqrt(np.diag(sol.Q)[cols]) * s0, strict=True)})
         sig_int.append(sd)
-    cams = tuple(BrownFraser(**{**{a: getattr(c, a) for a in ("width", "height", "pixel_size_mm")},
-                                **dict(zip(PARAMETER_NAMES, c.params().tolist(), strict=True)), "sigma": sd})
-                 for c, sd in zip(sol.cameras, sig_int, strict=True))
+    cams = tuple(
+        BrownFraser(
+            **{
+                **{a: getattr(c, a) for a in ("width", "height", "pixel_size_mm")},
+                **dict(zip(PARAMETER_NAMES, c.params().tolist(), strict=True)),
+                "sigma": sd,
+            }
+        )
+        for c, sd in zip(sol.cameras, sig_int, strict=True)
+    )
     inl, res = sol.inliers, sol.residuals_px
-    rms = np.array([np.sqrt(np.mean(res[(camera == k) & inl] ** 2)) if np.any((camera == k) & inl) else np.nan
-                    for k in range(K)])
+    rms = np.array(
+        [np.sqrt(np.mean(res[(camera == k) & inl] ** 2)) if np.any((camera == k) & inl) else np.nan for k in range(K)]
+    )
     n_obs = np.bincount(camera, minlength=K)
     n_rej = np.bincount(camera[~inl], minlength=K)
     sig_xyz = np.zeros((len(ids), 3))
     for i in range(len(ids)):
         c = model.point_col[i]
         if c >= 0:
-            sig_xyz[i] = np.sqrt(np.clip(np.diag(sol.Q[c:c + 3, c:c + 3]), 0.0, None)) * s0
+            sig_xyz[i] = np.sqrt(np.clip(np.diag(sol.Q[c : c + 3, c : c + 3]), 0.0, None)) * s0
     codes = [int(field.codes[field.index[t]]) if t in field.index else -1 for t in ids]
     diam = [float(field.diameters_mm[field.index[t]]) if t in field.index else np.nan for t in ids]
     return RigCalibration(
-        rig=Rig(cams, np.array(T_master)), sigma_rotation_deg=sigma[:, :3], sigma_position_mm=sigma[:, 3:],
-        sigma_rotation_formal_deg=formal[:, :3], sigma_position_formal_mm=formal[:, 3:],
-        sigma_rotation_jackknife_deg=jack[:, :3], sigma_position_jackknife_mm=jack[:, 3:], sigma_source=sigma_source,
-        sigma_interior=tuple(sig_int), sigma0_px=s0 * sigma_px, redundancy=sol.redundancy, rms_px=rms,
-        n_observations=n_obs, n_rejected=n_rej, epochs=tuple(epochs[e] for e in keep_epoch),
+        rig=Rig(cams, np.array(T_master)),
+        sigma_rotation_deg=sigma[:, :3],
+        sigma_position_mm=sigma[:, 3:],
+        sigma_rotation_formal_deg=formal[:, :3],
+        sigma_position_formal_mm=formal[:, 3:],
+        sigma_rotation_jackknife_deg=jack[:, :3],
+        sigma_position_jackknife_mm=jack[:, 3:],
+        sigma_source=sigma_source,
+        sigma_interior=tuple(sig_int),
+        sigma0_px=s0 * sigma_px,
+        redundancy=sol.redundancy,
+        rms_px=rms,
+        n_observations=n_obs,
+        n_rejected=n_rej,
+        epochs=tuple(epochs[e] for e in keep_epoch),
         T_field_rig=np.array([inv_T(T_from_params(v)) for v in sol.stations]),
-        field=Field(field.name, tuple(ids), sol.points, np.array(codes), np.array(diam)), sigma_xyz_mm=sig_xyz,
-        warnings=tuple(warnings), extra={"free_interior": list(free_t), "field_fixed": field_fixed})
+        field=Field(field.name, tuple(ids), sol.points, np.array(codes), np.array(diam)),
+        sigma_xyz_mm=sig_xyz,
+        warnings=tuple(warnings),
+        extra={"free_interior": list(free_t), "field_fixed": field_fixed},
+    )
 
 
 def _camera_from_field(station: Array, offsets: Array, k: int) -> Array:
@@ -427,9 +482,17 @@ def _jackknife_sigmas(net: NetworkInput, sol: NetworkSolution) -> Array:
     theta = np.zeros((S, K, 6))
     for s in range(S):
         m = sol.inliers & (net.station != s)
-        sub = replace(net, station=net.station[m] - (net.station[m] > s), camera=net.camera[m],
-                      point=net.point[m], uv=net.uv[m], stations=np.delete(sol.stations, s, axis=0),
-                      offsets=sol.offsets, points=sol.points, cameras=tuple(sol.cameras))
+        sub = replace(
+            net,
+            station=net.station[m] - (net.station[m] > s),
+            camera=net.camera[m],
+            point=net.point[m],
+            uv=net.uv[m],
+            stations=np.delete(sol.stations, s, axis=0),
+            offsets=sol.offsets,
+            points=sol.points,
+            cameras=tuple(sol.cameras),
+        )
         try:
             rep = solve_network(sub, reject_outliers=False, near=True)
             if not rep.converged:  # Gauss-Newton from the full solution did not settle: the full solver

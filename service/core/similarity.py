@@ -80,9 +80,7 @@ class SimilarityResult:
     n_points: int
 
 
-def _check_pairs(
-    p_a: ArrayLike, p_b: ArrayLike, weights: ArrayLike | None
-) -> tuple[Array, Array, Array]:
+def _check_pairs(p_a: ArrayLike, p_b: ArrayLike, weights: ArrayLike | None) -> tuple[Array, Array, Array]:
     a = np.asarray(p_a, dtype=np.float64)
     b = np.asarray(p_b, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 3 or b.shape != a.shape:
@@ -157,8 +155,7 @@ def rigid_transform(
     if spread[0] <= 0 or spread[1] < COLLINEAR_RATIO * spread[0]:
         raise SolveError(
             Reason.degenerate_geometry,
-            "the points are collinear or coincident, "
-            "so the rotation about their line is undetermined.",
+            "the points are collinear or coincident, so the rotation about their line is undetermined.",
             {"n_points": n, "singular_values_mm": spread.tolist()},
         )
     cross = (A * w[:, None]).T @ B / W  # Sigma_ab of Umeyama, (3, 3)
@@ -179,9 +176,7 @@ def rigid_transform(
     T[:3, 3] = t
     residuals = a - (scale * b @ R.T + t)
     rms = float(np.sqrt(np.sum(w * np.sum(residuals**2, axis=1)) / W))
-    return SimilarityResult(
-        T_a_b=T, R_a_b=R, t_a_b=t, scale=scale, residuals_mm=residuals, rms_mm=rms, n_points=n
-    )
+    return SimilarityResult(T_a_b=T, R_a_b=R, t_a_b=t, scale=scale, residuals_mm=residuals, rms_mm=rms, n_points=n)
 
 
 @dataclass(frozen=True)
@@ -219,9 +214,7 @@ class RigidFitResult:
     n_iter: int
 
 
-def _rigid_linearise(
-    R: Array, t: Array, a: Array, b: Array, info_b: Array
-) -> tuple[Array, Array, Array]:
+def _rigid_linearise(R: Array, t: Array, a: Array, b: Array, info_b: Array) -> tuple[Array, Array, Array]:
     """Residuals (n, 3) of ``a - (R b + t)``, Jacobian (n, 3, 6), weights (n, 3, 3) in frame a."""
     Rb = b @ R.T
     r = a - (Rb + t)
@@ -263,10 +256,7 @@ def rigid_transform_with_covariance(
     b = np.asarray(p_b, dtype=np.float64)
     C = np.asarray(covariance_b, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 3 or b.shape != a.shape or C.shape != (len(a), 3, 3):
-        raise ValueError(
-            "need p_a (N, 3), p_b (N, 3), covariance_b (N, 3, 3); "
-            f"got {a.shape}, {b.shape}, {C.shape}"
-        )
+        raise ValueError(f"need p_a (N, 3), p_b (N, 3), covariance_b (N, 3, 3); got {a.shape}, {b.shape}, {C.shape}")
     used = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
     used &= np.all(np.isfinite(C), axis=(1, 2))
     au, bu, Cu = a[used], b[used], C[used]

@@ -138,8 +138,14 @@ class ClockMapper:
     time) pairs and asks for host times; no clock is read here.
     """
 
-    def __init__(self, window: int = 300, min_latency_ns: float = 0.0, refit_every: int = 10,
-                 min_rate_span_ns: float = 0.0, offset_span_ns: float = np.inf) -> None:
+    def __init__(
+        self,
+        window: int = 300,
+        min_latency_ns: float = 0.0,
+        refit_every: int = 10,
+        min_rate_span_ns: float = 0.0,
+        offset_span_ns: float = np.inf,
+    ) -> None:
         if window < 2:
             raise ValueError("window must hold at least 2 events")
         self._d: deque[float] = deque(maxlen=window)
@@ -174,8 +180,13 @@ class ClockMapper:
             self._refit()
 
     def _refit(self) -> None:
-        self._fit = fit_lower_envelope(np.fromiter(self._d, float), np.fromiter(self._h, float), self.min_latency_ns,
-                                       self.min_rate_span_ns, self.offset_span_ns)
+        self._fit = fit_lower_envelope(
+            np.fromiter(self._d, float),
+            np.fromiter(self._h, float),
+            self.min_latency_ns,
+            self.min_rate_span_ns,
+            self.offset_span_ns,
+        )
         self._since_fit = 0
 
     def reset(self) -> None:

@@ -29,8 +29,9 @@ class PoseSample:
     t_s: float
 
 
-def predict_pose(history: list[PoseSample] | tuple[PoseSample, ...], t_s: float,
-                 max_gap_s: float = 0.5) -> Array | None:
+def predict_pose(
+    history: list[PoseSample] | tuple[PoseSample, ...], t_s: float, max_gap_s: float = 0.5
+) -> Array | None:
     """Constant-velocity prediction of ``T_field_camera`` at ``t_s``; None without a usable history.
 
     With one sample (or a gap over ``max_gap_s``) the last pose is returned as is.

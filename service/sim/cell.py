@@ -57,9 +57,7 @@ _LAYOUT: dict[str, tuple[tuple[float, float, float], tuple[float, ...]]] = {
 }
 _PLATE_YAW_DEG = 93.0
 _PLATE_TILT_DEG = (0.2, 0.1)  # about base x and y: a plate on a floor that is not quite level
-_T_FLANGE_CAMERA = make_T(
-    Rotation.from_euler("ZYX", [90.0, 2.0, -3.0], degrees=True).as_matrix(), [78.0, -12.0, 65.0]
-)
+_T_FLANGE_CAMERA = make_T(Rotation.from_euler("ZYX", [90.0, 2.0, -3.0], degrees=True).as_matrix(), [78.0, -12.0, 65.0])
 _MIN_DEXTERITY_MM = 50.0
 _RENDER_DEFAULT = RenderSettings()
 
@@ -231,8 +229,9 @@ class SimCell:
         the move's duration (s). Raises ``SolveError`` when the pose is unreachable.
         """
         q0 = self.q_at(t_start_s)
-        traj = trajectory_through_poses(self.nominal, [np.asarray(T_base_flange, dtype=np.float64)], q0,
-                                        speed_mm_s=speed_mm_s, start_at_seed=True)
+        traj = trajectory_through_poses(
+            self.nominal, [np.asarray(T_base_flange, dtype=np.float64)], q0, speed_mm_s=speed_mm_s, start_at_seed=True
+        )
         self._moves = (*[m for m in self._moves if m[0] < t_start_s], (float(t_start_s), traj))
         return float(traj.duration_s)
 

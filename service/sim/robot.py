@@ -641,4 +641,3 @@ def random_workspace_poses(
             Reason.degenerate_geometry, f"found only {len(out)} of {n} reachable poses in {max_tries} tries"
         )
     return out
-
