@@ -41,8 +41,9 @@ class FlakyCamera:
 def test_channel_survives_a_driver_bug_and_flags_a_silent_camera():
     events = []
     cam = FlakyCamera()
-    ch = CameraChannel("c", cam, CameraSettings(frame_rate_hz=100.0), threading.Condition(),
-                       lambda *e: events.append(e))
+    ch = CameraChannel(
+        "c", cam, CameraSettings(frame_rate_hz=100.0), threading.Condition(), lambda *e: events.append(e)
+    )
     ch.start()
     try:
         deadline = time.monotonic() + 5
@@ -52,8 +53,10 @@ def test_channel_survives_a_driver_bug_and_flags_a_silent_camera():
         assert any("driver error" in e[2] and "ZeroDivisionError" in e[2] for e in events)
         assert ch.snapshot()["state"] == "ok"
         cam.silent = True
-        time.sleep(3.3)
-        snap = ch.snapshot()
+        # stalled after 1 s of silence (service.acquisition.STALL_MIN_S): poll for it, within the 3.3 s
+        deadline = time.monotonic() + 3.3
+        while (snap := ch.snapshot())["state"] != "stalled" and time.monotonic() < deadline:
+            time.sleep(0.02)
         assert snap["state"] == "stalled" and "no frame for" in snap["error"]
     finally:
         ch.stop()

@@ -26,8 +26,9 @@ from tests.api.conftest import free_port, run_server
 
 
 def _wait_ok(live):
-    return live.wait_for(lambda h: h["status"] == "ok" and h["processing"]["ok"] >= 3, timeout_s=180.0,
-                         what="a running cell")
+    return live.wait_for(
+        lambda h: h["status"] == "ok" and h["processing"]["ok"] >= 3, timeout_s=180.0, what="a running cell"
+    )
 
 
 def _fault(live, device, action, **extra):
@@ -43,13 +44,16 @@ def _database(live):
 
 # ------------------------------------------------------------------ acknowledged = stored
 
+
 def _hold_write_lock(path):
     """Another process holding SQLite's write lock (a backup, an operator's sqlite3 shell)."""
-    code = ("import sqlite3, sys\n"
-            f"c = sqlite3.connect({str(path)!r}, isolation_level=None)\n"
-            "c.execute('BEGIN IMMEDIATE')\n"
-            "print('locked', flush=True)\n"
-            "sys.stdin.readline()\n")
+    code = (
+        "import sqlite3, sys\n"
+        f"c = sqlite3.connect({str(path)!r}, isolation_level=None)\n"
+        "c.execute('BEGIN IMMEDIATE')\n"
+        "print('locked', flush=True)\n"
+        "sys.stdin.readline()\n"
+    )
     p = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert p.stdout is not None and p.stdout.readline().strip() == "locked"
     return p
@@ -90,13 +94,17 @@ def test_a_measurement_is_not_acknowledged_while_another_process_holds_the_datab
 
 # ------------------------------------------------------------------ device outages through /sim/faults
 
+
 def test_fault_injection_needs_the_token_and_refuses_unknown_devices(live):
     with live.client(auth=False) as c:
         r = c.post("/sim/faults", json={"device": "camera", "action": "unplug"})
     assert r.status_code == 401 and r.json()["reason"] == "unauthorized"
     with live.client() as c:
-        for bad in ({"device": "laser", "action": "unplug"}, {"device": "camera", "action": "explode"},
-                    {"device": "camera", "action": "unplug", "camera": "nope"}):
+        for bad in (
+            {"device": "laser", "action": "unplug"},
+            {"device": "camera", "action": "explode"},
+            {"device": "camera", "action": "unplug", "camera": "nope"},
+        ):
             r = c.post("/sim/faults", json=bad)
             assert 400 <= r.status_code < 500 and r.json()["ok"] is False, (bad, r.text)
 
@@ -239,14 +247,19 @@ def test_fault_injection_is_not_found_when_the_cell_is_not_simulated(tmp_path):
 
 # ------------------------------------------------------------------ a client that stops reading
 
+
 def _raw_websocket(url_host, port, path):
     """A WebSocket handshake on a raw socket with a tiny receive buffer, then never a read."""
     s = socket.socket()
     s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     s.connect((url_host, port))
     key = base64.b64encode(os.urandom(16)).decode()
-    s.sendall((f"GET {path} HTTP/1.1\r\nHost: {url_host}:{port}\r\nUpgrade: websocket\r\n"
-               f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n").encode())
+    s.sendall(
+        (
+            f"GET {path} HTTP/1.1\r\nHost: {url_host}:{port}\r\nUpgrade: websocket\r\n"
+            f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n"
+        ).encode()
+    )
     head = b""
     while b"\r\n\r\n" not in head:
         head += s.recv(1)
@@ -272,16 +285,30 @@ def _read_until_closed(s, timeout_s):
 @pytest.mark.slow
 def test_a_websocket_client_that_stops_reading_is_disconnected(tmp_path):
     # while the socket buffers still take data, the unanswered keep-alive ping finds the client
-    settings = load_settings(None, state_dir=str(tmp_path), server__port=free_port(), server__token="t",
-                             server__ws_ping_interval_s=1.0, server__ws_ping_timeout_s=1.5)
+    settings = load_settings(
+        None,
+        state_dir=str(tmp_path),
+        server__port=free_port(),
+        server__token="t",
+        server__ws_ping_interval_s=1.0,
+        server__ws_ping_timeout_s=1.5,
+    )
     for live in run_server(settings):
         _wait_ok(live)
         hub = live.app.state.hub
         port = int(live.url.rsplit(":", 1)[1])
         with connect(f"{live.ws_url}/ws/poses?targets=false", open_timeout=10) as reader:
             s = _raw_websocket("127.0.0.1", port, "/ws/poses")  # full messages with targets, never read
+            t_connected = time.monotonic()
             try:
-                time.sleep(4.0)  # ping after 1 s, no pong 1.5 s later: dropped, with a margin for a loaded machine
+                # ping after 1 s, no pong 1.5 s later: dropped within 4 s, with a margin for a loaded machine.
+                # The reader keeps reading meanwhile: a backlog in front of its closing handshake would hold
+                # the exit of the with-block for websockets' 10 s close timeout.
+                registered = False
+                while (n := hub.stats()["clients"]) != 1 or not registered:
+                    registered |= n == 2
+                    assert time.monotonic() - t_connected < 4.0, hub.stats()
+                    reader.recv(timeout=5)
                 for _ in range(5):
                     assert json.loads(reader.recv(timeout=5))["camera"] == "cam0"  # the other client is served
                 assert hub.stats()["clients"] == 1

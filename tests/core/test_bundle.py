@@ -35,29 +35,43 @@ def field_3d(rng: np.random.Generator, n: int = 120, relief_mm: float = 120.0) -
     return Field("synthetic", tuple(f"T{i}" for i in range(n)), xyz, np.full(n, -1), np.full(n, 6.0))
 
 
-def convergent_poses(rng: np.random.Generator, n: int, rolls=(0.0, 90.0, 180.0, 270.0),
-                     view_angle_deg=(50.0, 65.0), roll_jitter_deg: float = 8.0) -> list[np.ndarray]:
+def convergent_poses(
+    rng: np.random.Generator,
+    n: int,
+    rolls=(0.0, 90.0, 180.0, 270.0),
+    view_angle_deg=(50.0, 65.0),
+    roll_jitter_deg: float = 8.0,
+) -> list[np.ndarray]:
     """Views from all around the plate, tilted by 25-40 deg, rolled in turn by ``rolls``."""
     poses = []
     for k in range(n):
-        poses.append(scene.reference_pose(
-            view_angle_deg=rng.uniform(*view_angle_deg), distance_mm=rng.uniform(1050.0, 1200.0),
-            roll_deg=rolls[k % len(rolls)] + rng.uniform(-roll_jitter_deg, roll_jitter_deg),
-            azimuth_deg=k * 360.0 / n + rng.uniform(-10, 10),
-            look_at_mm=(rng.uniform(-40, 40), rng.uniform(-40, 40), 0.0)))
+        poses.append(
+            scene.reference_pose(
+                view_angle_deg=rng.uniform(*view_angle_deg),
+                distance_mm=rng.uniform(1050.0, 1200.0),
+                roll_deg=rolls[k % len(rolls)] + rng.uniform(-roll_jitter_deg, roll_jitter_deg),
+                azimuth_deg=k * 360.0 / n + rng.uniform(-10, 10),
+                look_at_mm=(rng.uniform(-40, 40), rng.uniform(-40, 40), 0.0),
+            )
+        )
     return poses
 
 
-def observe(rng: np.random.Generator, field: Field, poses, camera: BrownFraser = TRUE_CAMERA,
-            noise_px: float = NOISE_PX, with_pose: bool = False) -> list[ImagePoints]:
+def observe(
+    rng: np.random.Generator,
+    field: Field,
+    poses,
+    camera: BrownFraser = TRUE_CAMERA,
+    noise_px: float = NOISE_PX,
+    with_pose: bool = False,
+) -> list[ImagePoints]:
     images = []
     for k, T in enumerate(poses):
         p_camera = (field.xyz - T[:3, 3]) @ T[:3, :3]
         uv = camera.pixel_from_camera(p_camera)
         seen = camera.in_image(uv, 5.0) & (p_camera[:, 2] > 0)
         noisy = uv[seen] + rng.normal(0.0, noise_px, (int(seen.sum()), 2))
-        images.append(ImagePoints(f"img{k:02d}", tuple(np.array(field.ids)[seen]), noisy,
-                                  T if with_pose else None))
+        images.append(ImagePoints(f"img{k:02d}", tuple(np.array(field.ids)[seen]), noisy, T if with_pose else None))
     return images
 
 
@@ -78,10 +92,25 @@ def test_analytic_jacobian_is_the_derivative_of_the_residuals(space, rng):
     st, k, i = (np.array(a) for a in zip(*[(a, b, c) for a in range(s) for b in range(2) for c in range(n)]))
     free = np.ones(n, bool)
     free[0] = False
-    extra = ExtraRows(control=((1, pts[1] + 0.1, 0.05),), bars=((2, 3, 100.0, 0.01),),
-                      inner=(np.arange(1, n), pts[1:] + 0.2, 7, 3.0))
-    model = BundleModel(cams, [("c_mm", "x0_mm", "K1", "P2", "B1"), ("c_mm", "K2", "B2", "y0_mm")], st, k, i,
-                        rng.uniform(0, 1000, (len(st), 2)), s, free, True, pts, offsets, space, 0.1, extra)
+    extra = ExtraRows(
+        control=((1, pts[1] + 0.1, 0.05),), bars=((2, 3, 100.0, 0.01),), inner=(np.arange(1, n), pts[1:] + 0.2, 7, 3.0)
+    )
+    model = BundleModel(
+        cams,
+        [("c_mm", "x0_mm", "K1", "P2", "B1"), ("c_mm", "K2", "B2", "y0_mm")],
+        st,
+        k,
+        i,
+        rng.uniform(0, 1000, (len(st), 2)),
+        s,
+        free,
+        True,
+        pts,
+        offsets,
+        space,
+        0.1,
+        extra,
+    )
     x = model.pack(cams, stations, offsets, pts)
     J = model.jacobian(x).toarray()
     numeric = np.zeros_like(J)
@@ -100,8 +129,22 @@ def test_field_similarity_leaves_every_image_residual_unchanged(rng):
     poses = convergent_poses(rng, 3)
     st = np.array([params_from_T(inv_T(T)) for T in poses])
     s, i = (np.array(a) for a in zip(*[(a, c) for a in range(3) for c in range(12)]))
-    model = BundleModel([TRUE_CAMERA], [PARAMETER_NAMES], s, np.zeros_like(s), i, rng.uniform(0, 1000, (36, 2)),
-                        3, np.ones(12, bool), False, field.xyz, np.zeros((0, 6)), "pixel", 0.1, ExtraRows())
+    model = BundleModel(
+        [TRUE_CAMERA],
+        [PARAMETER_NAMES],
+        s,
+        np.zeros_like(s),
+        i,
+        rng.uniform(0, 1000, (36, 2)),
+        3,
+        np.ones(12, bool),
+        False,
+        field.xyz,
+        np.zeros((0, 6)),
+        "pixel",
+        0.1,
+        ExtraRows(),
+    )
     x = model.pack([TRUE_CAMERA], st, np.zeros((0, 6)), field.xyz)
     J = model.jacobian(x).toarray()
     E = gauge_basis(model, x, 7)
@@ -136,6 +179,7 @@ def test_ideal_space_residuals_recover_the_camera_too(rng):
     assert 0.7 * NOISE_PX < result.sigma0_px < 1.3 * NOISE_PX  # ideal-coordinate residuals, in px
 
 
+@pytest.mark.slow
 def test_sigmas_agree_with_monte_carlo_scatter_within_20_percent():
     # 150 trials: the standard error of a sample standard deviation is 1/sqrt(2 * 149) = 5.8 %,
     # so 20 % is a 3.4-sigma margin per parameter. Same geometry, new noise each trial.
@@ -177,8 +221,9 @@ def test_fixed_parameters_keep_their_start_values_and_zero_sigma(rng):
     field = field_3d(rng)
     images = observe(rng, field, convergent_poses(rng, 10))
     start = dataclasses.replace(NOMINAL_CAMERA, K3=TRUE_CAMERA.K3, B1=TRUE_CAMERA.B1, B2=TRUE_CAMERA.B2)
-    result = calibrate_camera(start, field, images, free=("c_mm", "x0_mm", "y0_mm", "K1", "K2", "P1", "P2"),
-                              sigma_px=NOISE_PX)
+    result = calibrate_camera(
+        start, field, images, free=("c_mm", "x0_mm", "y0_mm", "K1", "K2", "P1", "P2"), sigma_px=NOISE_PX
+    )
     for n in ("K3", "B1", "B2"):
         assert getattr(result.camera, n) == getattr(start, n) and result.sigma[n] == 0.0
     assert result.correlation.shape == (7, 7)
@@ -187,8 +232,7 @@ def test_fixed_parameters_keep_their_start_values_and_zero_sigma(rng):
 
 def test_calibrated_camera_resects_a_new_image_to_the_noise_level(rng):
     field = field_3d(rng)
-    result = calibrate_camera(NOMINAL_CAMERA, field, observe(rng, field, convergent_poses(rng, 12)),
-                              sigma_px=NOISE_PX)
+    result = calibrate_camera(NOMINAL_CAMERA, field, observe(rng, field, convergent_poses(rng, 12)), sigma_px=NOISE_PX)
     image = observe(rng, field, convergent_poses(rng, 1))[0]
     for camera, lo, hi in ((result.camera, 0.7, 1.4), (NOMINAL_CAMERA, 20.0, np.inf)):
         r = resect(camera, field.xyz[field.indices_of(list(image.ids))], image.uv, reject_outliers=False)
@@ -242,10 +286,11 @@ def test_scale_bar_sets_the_scale_of_a_wrongly_scaled_nominal_field(rng):
 
 def test_control_points_stay_fixed_and_unknown_targets_are_intersected(rng):
     truth = field_3d(rng)
-    control = [int(np.argmin(np.linalg.norm(truth.xyz[:, :2] - c, axis=1)))
-               for c in ((-300, -230), (300, -230), (300, 230), (-300, 230), (0, 0), (0, 200))]
-    known = Field("control", tuple(truth.ids[i] for i in control), truth.xyz[control], np.full(6, -1),
-                  np.full(6, 6.0))
+    control = [
+        int(np.argmin(np.linalg.norm(truth.xyz[:, :2] - c, axis=1)))
+        for c in ((-300, -230), (300, -230), (300, 230), (-300, 230), (0, 0), (0, 200))
+    ]
+    known = Field("control", tuple(truth.ids[i] for i in control), truth.xyz[control], np.full(6, -1), np.full(6, 6.0))
     images = observe(rng, truth, convergent_poses(rng, 12))
     result = calibrate_camera(NOMINAL_CAMERA, known, images, datum=Datum(control=known.ids), sigma_px=NOISE_PX)
     assert len(result.field) == len(truth)
@@ -306,8 +351,9 @@ def test_weighted_control_points_move_within_their_sigma(rng):
     nominal = dataclasses.replace(truth, xyz=truth.xyz.copy())
     nominal.xyz[:8] += rng.normal(0.0, 0.2, (8, 3))  # surveyed to 0.2 mm
     images = observe(rng, truth, convergent_poses(rng, 12))
-    result = calibrate_camera(NOMINAL_CAMERA, nominal, images, datum=Datum(control=ids, control_sigma_mm=0.2),
-                              sigma_px=NOISE_PX)
+    result = calibrate_camera(
+        NOMINAL_CAMERA, nominal, images, datum=Datum(control=ids, control_sigma_mm=0.2), sigma_px=NOISE_PX
+    )
     rows = result.field.indices_of(list(ids))
     assert np.all(result.sigma_xyz_mm[rows] > 0) and np.all(result.sigma_xyz_mm[rows] < 0.2)
     assert result.datum["kind"] == "control points" and result.datum["control_sigma_mm"] == 0.2
