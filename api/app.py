@@ -17,6 +17,7 @@ import logging
 import os
 import socket
 from collections.abc import AsyncIterator
+from functools import partial
 from pathlib import Path
 
 from fastapi import FastAPI
@@ -28,11 +29,10 @@ from api.middleware import EdgeGuard, EdgeRules
 from api.routes import calibration, camera_calibration, config, data, handeye, health, measure, sim
 from api.security import resolve_token
 from api.ws import Hub
-from service.calibration_state import CalibrationState
-from service.calibstore import CalibrationStore
+from service.runtime.worker import Worker
 from service.settings import Settings, apply_runtime_file
-from service.storage import MeasurementStore
-from service.worker import Worker
+from service.store.calibrations import CalibrationStore
+from service.store.measurements import MeasurementStore
 
 log = logging.getLogger(__name__)
 STATIC = Path(__file__).parent / "static"
@@ -64,9 +64,8 @@ def create_app(settings: Settings) -> FastAPI:
             runtime = apply_runtime_file(settings, events=store)  # a bad file: set aside, an event, not applied
             settings.cameras, settings.processing = runtime.cameras, runtime.processing
             calib_store = CalibrationStore(state_dir / "calibration")
-            worker = Worker(settings, store)
             # loading calibrations may build the simulated cell (a second); keep the loop free
-            worker.calibration = await asyncio.to_thread(CalibrationState, settings, calib_store, worker.cell)
+            worker = await asyncio.to_thread(partial(Worker, settings, store, calib_store=calib_store))
             hub = Hub(stall_timeout_s=settings.server.ws_stall_timeout_s)
             hub.bind(asyncio.get_running_loop())
             app.state.worker, app.state.store, app.state.hub = worker, store, hub

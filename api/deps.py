@@ -9,8 +9,8 @@ from fastapi import Depends, Request
 from api.errors import ApiError
 from api.ws import Hub
 from service.core.results import Reason
-from service.storage import MeasurementStore
-from service.worker import Worker
+from service.runtime.worker import Worker
+from service.store.measurements import MeasurementStore
 
 
 def get_worker(request: Request) -> Worker:

@@ -15,24 +15,47 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.core.results import Reason
 
-STATUS: dict[str, int] = {
+# every reason's HTTP status, where an error body carries it (tests/api/test_errors.py: all of Reason)
+STATUS: dict[Reason, int] = {
+    # the input cannot be solved: the request was understood, its content is unusable
     Reason.bad_input: 422,
+    Reason.bad_image: 422,
+    Reason.degenerate_geometry: 422,
+    Reason.behind_camera: 422,
+    Reason.no_convergence: 422,
+    Reason.poor_motion: 422,
+    # the cell's state does not allow it now
+    Reason.too_few_targets: 409,
+    Reason.not_calibrated: 409,
+    Reason.not_solved: 409,
+    Reason.robot_moving: 409,
+    Reason.unsupported: 409,
+    # the service cannot answer now; try again
     Reason.initializing: 503,
     Reason.camera_disconnected: 503,
     Reason.robot_disconnected: 503,
-    Reason.not_calibrated: 409,
-    Reason.timeout: 504,
+    Reason.stale: 503,
+    Reason.storage_unavailable: 503,
     Reason.solver_unavailable: 503,
+    Reason.busy: 503,
+    Reason.timeout: 504,
     Reason.no_frame: 504,
-    "unauthorized": 401,
-    "not_found": 404,
+    # the request itself
+    Reason.unauthorized: 401,
+    Reason.not_found: 404,
+    Reason.method_not_allowed: 405,
+    Reason.host_not_allowed: 400,
+    Reason.origin_not_allowed: 403,
+    Reason.body_too_large: 413,
+    Reason.header_too_large: 431,
+    Reason.http_error: 400,
 }
 
 
 class ApiError(Exception):
-    def __init__(self, reason: str, message: str, status: int | None = None, **details: Any) -> None:
+    def __init__(self, reason: Reason, message: str, status: int | None = None, **details: Any) -> None:
         super().__init__(message)
-        self.reason, self.message, self.details = str(reason), message, details
+        self.reason, self.message, self.details = Reason(reason), message, details
         self.status = status or STATUS.get(self.reason, 400)
 
 
@@ -55,5 +78,5 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_: Request, e: StarletteHTTPException) -> JSONResponse:
-        reason = {404: "not_found", 405: "method_not_allowed"}.get(e.status_code, "http_error")
+        reason = {404: Reason.not_found, 405: Reason.method_not_allowed}.get(e.status_code, Reason.http_error)
         return JSONResponse(body(reason, str(e.detail)), status_code=e.status_code)

@@ -39,6 +39,7 @@ from typing import Any, ClassVar, Literal
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from api.errors import body as error_body
+from service.core.results import Reason
 
 log = logging.getLogger(__name__)
 Phase = Literal["idle", "header", "body"]
@@ -109,7 +110,7 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
             self._answer(
                 503,
                 "Service Unavailable",
-                "busy",
+                Reason.busy,
                 f"the service has {limit} connections open (server.limit_concurrency); try again",
             )
             return
@@ -128,7 +129,7 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
             self._answer(
                 431,
                 "Request Header Fields Too Large",
-                "header_too_large",
+                Reason.header_too_large,
                 f"the request line and headers exceed {self.limits.max_header_bytes} bytes (server.max_header_bytes)",
             )
             return

@@ -49,6 +49,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from api.errors import body as error_body
 from api.security import UNAUTHORIZED, token_matches
+from service.core.results import Reason
 from service.settings import ServerSettings
 
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
@@ -157,14 +158,14 @@ class EdgeGuard:
         hosts = headers.getlist("host")
         host = hosts[0] if hosts else None
         if len(hosts) > 1:  # RFC 9112 3.2: a request with two is refused (which one would a proxy use?)
-            await _refuse(scope, send, 400, "host_not_allowed", "the request has more than one Host header")
+            await _refuse(scope, send, 400, Reason.host_not_allowed, "the request has more than one Host header")
             return
         if not self.rules.host_allowed(host):
             await _refuse(
                 scope,
                 send,
                 400,
-                "host_not_allowed",
+                Reason.host_not_allowed,
                 f"this service does not answer to the host name {host!r}; "
                 "add it to server.allowed_hosts if it is the cell PC's",
             )
@@ -176,7 +177,7 @@ class EdgeGuard:
                     scope,
                     send,
                     403,
-                    "origin_not_allowed",
+                    Reason.origin_not_allowed,
                     f"a page from {origin!r} may not open this stream; "
                     "list its origin in server.cors_origins if it should",
                 )
@@ -187,13 +188,19 @@ class EdgeGuard:
         has_body = headers.get("content-length", "0") not in ("", "0") or "transfer-encoding" in headers
         if scope["method"] not in SAFE_METHODS and not token_matches(headers.get("authorization"), self.token()):
             await _refuse(
-                scope, send, 401, "unauthorized", UNAUTHORIZED, close=has_body, extra=[(b"www-authenticate", b"Bearer")]
+                scope,
+                send,
+                401,
+                Reason.unauthorized,
+                UNAUTHORIZED,
+                close=has_body,
+                extra=[(b"www-authenticate", b"Bearer")],
             )
             return
         limit = self.rules.max_body_bytes
         declared = headers.get("content-length", "")
         if declared.isdigit() and int(declared) > limit:
-            await _refuse(scope, send, 413, "body_too_large", _too_large(limit), close=True)
+            await _refuse(scope, send, 413, Reason.body_too_large, _too_large(limit), close=True)
             return
 
         received = 0
@@ -208,7 +215,7 @@ class EdgeGuard:
                 if received > limit:
                     refused = True
                     if not started:
-                        await _refuse(scope, send, 413, "body_too_large", _too_large(limit), close=True)
+                        await _refuse(scope, send, 413, Reason.body_too_large, _too_large(limit), close=True)
                     return {"type": "http.disconnect"}
             return message
 

@@ -24,6 +24,7 @@ from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from api.errors import ApiError
+from service.core.results import Reason
 
 _bearer = HTTPBearer(auto_error=False)
 
@@ -70,7 +71,7 @@ def require_token(
 ) -> None:
     # the scheme's parse (credentials) only feeds the OpenAPI security scheme; the header decides
     if not token_matches(request.headers.get("authorization"), getattr(request.app.state, "token", None)):
-        raise ApiError("unauthorized", UNAUTHORIZED)
+        raise ApiError(Reason.unauthorized, UNAUTHORIZED)
 
 
 Authorized = Depends(require_token)

@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from drivers.base import CameraSettings, StrobeSettings, TriggerMode
-from service.formats import write_json_atomic
+from service.store.formats import write_json_atomic
 
 log = logging.getLogger(__name__)
 

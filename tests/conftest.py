@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.core.camera_model import BrownFraser
+from service.core.geometry.camera_model import BrownFraser
 from service.sim import scene
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from drivers.base import CameraInfo, CameraSettings, DriverTimeout, Frame
-from service.acquisition import CameraChannel
+from service.runtime.acquisition import CameraChannel
 
 
 class FlakyCamera:

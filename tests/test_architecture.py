@@ -51,7 +51,7 @@ def test_core_module_has_no_io_clock_thread_or_hardware(path):
 def test_service_never_imports_the_api_or_concrete_drivers(path):
     tree = ast.parse(path.read_text(), filename=str(path))
     # the console script is the composition root: its `serve` verb starts the API (lazily)
-    composition_root = path == ROOT / "service" / "cli.py"
+    composition_root = path.parent == ROOT / "service" / "cli"
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and node.module:
             m = node.module
@@ -60,6 +60,48 @@ def test_service_never_imports_the_api_or_concrete_drivers(path):
             assert not m.startswith(("drivers.camera", "drivers.robot")), (
                 f"{path.name}:{node.lineno} imports a concrete driver; go through drivers.registry"
             )
+
+
+# what each layer of service/ may import of the others (docs/architecture.md): downwards only
+LAYERS = {
+    "core": set(),  # pure maths: numpy, scipy, opencv, numba
+    "sim": {"core"},  # the simulated cell: physics over the core's geometry
+    "pipeline": {"core"},  # a frame -> a measured pose
+    "store": {"core"},  # files and the database
+    "settings": {"store", "drivers"},
+    "runtime": {"core", "pipeline", "store", "settings", "sim", "drivers"},  # the running cell
+    "workflows": {"core", "pipeline", "store", "settings", "sim"},  # the offline verbs' work
+    "bench": {"core", "pipeline", "store", "settings", "sim", "workflows"},
+    "cli": {"core", "pipeline", "store", "settings", "sim", "workflows", "bench", "runtime", "api"},
+}
+
+
+def _layer(module: str) -> str | None:
+    parts = module.split(".")
+    if parts[0] in ("api", "drivers"):
+        return parts[0]
+    if parts[0] != "service" or len(parts) == 1:
+        return None
+    return parts[1].removesuffix(".py")
+
+
+@pytest.mark.parametrize(
+    "path",
+    [p for p in _py_files([ROOT / "service"]) if p.parent != ROOT / "service" or p.stem == "settings"],
+    ids=lambda p: str(p.relative_to(ROOT)),
+)
+def test_layers_import_only_downwards(path):
+    rel = path.relative_to(ROOT).with_suffix("")
+    own = _layer(".".join(rel.parts))
+    assert own in LAYERS, f"{rel} is in no layer; add its folder to LAYERS and docs/architecture.md"
+    wrong = []
+    for node, _ in _imports(ast.parse(path.read_text(), filename=str(path))):
+        names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module]
+        for name in names:
+            layer = _layer(name)
+            if layer is not None and layer != own and layer not in LAYERS[own]:
+                wrong.append(f"line {node.lineno}: {name}")
+    assert not wrong, f"{rel} ({own}) imports above or beside its layer: " + "; ".join(wrong)
 
 
 def test_modules_fit_one_sitting():

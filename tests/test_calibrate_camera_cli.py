@@ -13,11 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service import cli, formats
-from service.core.camera_model import PARAMETER_NAMES, BrownFraser
-from service.core.rig import rig_from_dict
+from service.cli import main as cli
+from service.core.calib.rig import rig_from_dict
+from service.core.geometry.camera_model import PARAMETER_NAMES, BrownFraser
 from service.sim import scene
 from service.sim.render import RenderSettings, render_frame
+from service.store import formats
 from tests.conftest import shared_data
 from tests.core.test_bundle import NOISE_PX, TRUE_CAMERA, convergent_poses, field_3d, observe
 from tests.core.test_rig import SECOND_CAMERA, T_MASTER_CAMERA1, rig_images
@@ -189,7 +190,7 @@ def _side_by_side() -> np.ndarray:
     """Camera 1 120 mm to the right of camera 0, turned 5 deg towards it."""
     from scipy.spatial.transform import Rotation
 
-    from service.core.frames import make_T
+    from service.core.geometry.frames import make_T
 
     return make_T(Rotation.from_euler("y", -5.0, degrees=True).as_matrix(), [120.0, 0.0, 0.0])
 

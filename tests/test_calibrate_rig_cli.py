@@ -14,10 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service import cli, formats
-from service.calibrate_camera import _rig_shots, pair_epochs
+from service.cli import main as cli
 from service.sim import scene
 from service.sim.render import RenderSettings, render_frame
+from service.store import formats
+from service.workflows.calibrate_camera import _rig_shots, pair_epochs
 from tests.core.test_bundle import NOISE_PX, TRUE_CAMERA, convergent_poses, field_3d
 from tests.core.test_rig import SECOND_CAMERA, T_MASTER_CAMERA1, rig_images
 
@@ -212,6 +213,6 @@ def _side_by_side() -> np.ndarray:
     """Camera 1 120 mm to the right of camera 0, turned 5 deg towards it."""
     from scipy.spatial.transform import Rotation
 
-    from service.core.frames import make_T
+    from service.core.geometry.frames import make_T
 
     return make_T(Rotation.from_euler("y", -5.0, degrees=True).as_matrix(), [120.0, 0.0, 0.0])

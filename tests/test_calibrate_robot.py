@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from service.sim.robot import kr15, perturbed
+from service.core.robot.kinematics import kr15
+from service.sim.robot import perturbed
 
 POSECELL = Path(sys.executable).with_name("posecell")
 

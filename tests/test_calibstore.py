@@ -9,8 +9,8 @@ import threading
 
 import pytest
 
-from service import calibstore
-from service.calibstore import CalibrationError, CalibrationKind, CalibrationMissing, CalibrationStore
+from service.store import calibrations as calibstore
+from service.store.calibrations import CalibrationError, CalibrationKind, CalibrationMissing, CalibrationStore
 
 
 def camera(c_mm: float) -> dict:

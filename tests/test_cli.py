@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service import formats
-from service.core.frames import apply_T, inv_T, make_T
+from service.core.geometry.frames import apply_T, inv_T, make_T
 from service.sim.scene import reference_camera, reference_field, reference_pose
+from service.store import formats
 
 POSECELL = [str(Path(sys.executable).with_name("posecell"))]
 
@@ -127,7 +127,7 @@ def test_bench_accuracy_prints_both_paper_tables():
 
 @pytest.mark.slow
 def test_bench_speed_reports_every_condition_of_the_matrix_beside_the_peer():
-    from service.bench_conditions import CONDITIONS
+    from service.bench.conditions import CONDITIONS
 
     r = run("bench", "speed", "--frames", "3", "--condition-frames", "2")
     assert r.returncode == 0, r.stderr

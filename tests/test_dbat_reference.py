@@ -21,8 +21,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from service.core.bundle import Datum, calibrate_camera
-from service.formats_dbat import posecell_parameters, read_dbat_control, read_dbat_report, read_pm_export
+from service.core.calib.bundle import Datum, calibrate_camera
+from service.store.formats_dbat import posecell_parameters, read_dbat_control, read_dbat_report, read_pm_export
 from tests.conftest import shared_data
 
 DATA = "dbat-camcal"

@@ -10,11 +10,11 @@ import re
 import numpy as np
 import pytest
 
-from service import formats
-from service.calibration_state import CalibrationState, validate
-from service.calibstore import CalibrationStore
-from service.formats import FormatError
+from service.runtime.calibration_state import CalibrationState, validate
 from service.settings import Settings
+from service.store import formats
+from service.store.calibrations import CalibrationStore
+from service.store.formats import FormatError
 
 CAMERA = {  # DESIGN section 2
     "model": "brown-fraser", "width": 1300, "height": 1030, "pixel_size_mm": [0.0067, 0.0067],

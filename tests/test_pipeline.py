@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.core.frames import pose_difference
+from service.core.geometry.frames import pose_difference
 from service.core.results import Failure, PoseResult, Reason
-from service.pipeline import FrameMeasurer, MeasureSettings
+from service.pipeline.measure import FrameMeasurer, MeasureSettings
 from service.sim.render import RenderSettings, render_frame
 from service.sim.scene import reference_camera, reference_field, reference_pose
 
@@ -144,7 +144,7 @@ def test_roi_tracking_measures_once_when_the_prediction_holds_and_re_solves_when
     # With a velocity, every target is measured at once in tight windows about the constant-velocity
     # prediction; a disk off its window's centre by more than the tight allowance (1 px) sends the
     # frame through the two stages (generous windows, new pose, tight windows) and it still tracks.
-    from service import pipeline
+    from service.pipeline import measure as pipeline
 
     camera, field = cell
     calls: list[int] = []

@@ -26,16 +26,18 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
-from service import cli, formats, pipeline
-from service.core import codes_micmac
-from service.core.camera_model import BrownFraser
-from service.core.codes import AICON14, FAMILIES, POSECELL12
-from service.core.decode import read_codes
-from service.core.detect import DetectSettings, detect_blobs
-from service.core.frames import apply_T, inv_T
-from service.core.identify import project_field
+from service.cli import main as cli
+from service.core.geometry.camera_model import BrownFraser
+from service.core.geometry.frames import apply_T, inv_T
 from service.core.results import PoseResult
-from service.pipeline import FrameMeasurer, MeasureSettings, resect_observations
+from service.core.targets import codes_micmac
+from service.core.targets.codes import AICON14, FAMILIES, POSECELL12
+from service.core.targets.decode import read_codes
+from service.core.targets.detect import DetectSettings, detect_blobs
+from service.core.targets.identify import project_field
+from service.pipeline import measure as pipeline
+from service.pipeline.measure import FrameMeasurer, MeasureSettings, resect_observations
+from service.store import formats
 from tests.conftest import shared_data
 
 DATA = "micmac-circ-code-target"

@@ -7,8 +7,8 @@ import os
 import pytest
 
 from service.core.results import Reason, SolveError
-from service.handeye_session import SessionError, solve_samples
-from service.solver_process import SolverCrashed, SolverProcess
+from service.runtime.handeye_session import SessionError, solve_samples
+from service.runtime.solver_process import SolverCrashed, SolverProcess
 
 
 def _pid() -> int:

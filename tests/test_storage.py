@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.storage import CSV_COLUMNS, SCHEMA_VERSION, MeasurementStore, StorageError, StoreFull
+from service.store.measurements import CSV_COLUMNS, SCHEMA_VERSION, MeasurementStore, StorageError, StoreFull
 
 REPO = Path(__file__).resolve().parents[1]
 T0 = datetime(2025, 3, 1, 12, 0, 0, tzinfo=UTC)
@@ -185,7 +185,7 @@ def test_events_are_stored_and_filtered(open_store):
 KILL_CHILD = textwrap.dedent("""
     import sys, threading
     from pathlib import Path
-    from service.storage import MeasurementStore
+    from service.store.measurements import MeasurementStore
 
     store = MeasurementStore(Path(sys.argv[1]), batch_max=32, flush_interval_s=0.01, synchronous=sys.argv[2])
     store.start()

@@ -3,7 +3,7 @@
 The SVG is read back with ``xml.etree`` and its arcs are traced with an
 implementation of the SVG specification's endpoint-to-centre conversion
 written here. That way the drawing is checked against the code convention of
-``service.core.codes``, and not against the sheet module's own geometry.
+``service.core.targets.codes``, and not against the sheet module's own geometry.
 """
 
 from __future__ import annotations
@@ -16,12 +16,12 @@ import cv2
 import numpy as np
 import pytest
 
-from service.core import codes as C
-from service.core.decode import read_codes
-from service.formats import field_from_json
+from service.core.targets import codes as C
+from service.core.targets.decode import read_codes
 from service.sim.render import render_frame
 from service.sim.scene import reference_camera, reference_pose
-from service.targets_sheet import SheetOptions, field_json_of_sheet, make_sheet
+from service.store.formats import field_from_json
+from service.workflows.targets_sheet import SheetOptions, field_json_of_sheet, make_sheet
 
 SVG = "{http://www.w3.org/2000/svg}"
 

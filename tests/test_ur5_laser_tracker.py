@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.core.kinematic_id import dh_parameter_names, identify_kinematics
-from service.sim.robot import KinematicModel
-from service.sim.robot import ur5 as ur5_model
+from service.core.robot.identification import dh_parameter_names, identify_kinematics
+from service.core.robot.kinematics import KinematicModel
+from service.core.robot.kinematics import ur5 as ur5_model
 from tests.conftest import shared_data
 
 COLUMNS = ["step_order", "x_t", "y_t", "z_t", "x_dif", "y_dif", "z_dif", *[f"joint_{i}" for i in range(1, 7)]]

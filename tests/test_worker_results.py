@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from drivers.base import Frame
+from service.runtime.worker import STALE_MIN_S, STALE_PERIODS, Worker
 from service.settings import load_settings
-from service.worker import STALE_MIN_S, STALE_PERIODS, Worker
 
 
 @pytest.fixture

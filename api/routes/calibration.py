@@ -1,6 +1,6 @@
 """Calibration files: download, upload (validated, versioned, atomic), history and rollback.
 
-An upload is checked by ``service.formats`` (finite numbers of the right type within physical
+An upload is checked by ``service.store.formats`` (finite numbers of the right type within physical
 limits) before anything is stored; a refused one is a 422 and leaves the store and the worker as
 they were.
 """
@@ -16,7 +16,7 @@ from api.deps import WorkerDep
 from api.errors import ApiError
 from api.security import Authorized
 from service.core.results import Reason
-from service.formats import FormatError
+from service.store.formats import FormatError
 
 router = APIRouter(prefix="/calibration", tags=["calibration"])
 
@@ -70,7 +70,7 @@ def post_rollback(kind: Kind, version: int, request: Request, worker: WorkerDep)
     try:
         data = store.get(kind, version)
     except Exception as e:  # the store's "missing" error carries the sentence
-        raise ApiError("not_found", str(e)) from None
+        raise ApiError(Reason.not_found, str(e)) from None
     try:
         new_version = worker.calibration.update(kind, data, note=f"rollback to version {version}")
     except FormatError as e:  # stored before today's checks existed

@@ -23,12 +23,12 @@ from pydantic import BaseModel, ConfigDict, Field
 from api.deps import WorkerDep
 from api.errors import ApiError
 from api.security import Authorized
-from service.calibrate_camera import camera_json
-from service.core.bundle import ImagePoints, calibrate_camera
-from service.core.camera_model import PARAMETER_NAMES
+from service.core.calib.bundle import ImagePoints, calibrate_camera
+from service.core.geometry.camera_model import PARAMETER_NAMES
 from service.core.results import Reason, SolveError
-from service.formats import MAX_IMAGE_PX, FormatError
-from service.solver_process import SolverCrashed
+from service.runtime.solver_process import SolverCrashed
+from service.store.formats import MAX_IMAGE_PX, FormatError
+from service.workflows.calibrate_camera import camera_json
 
 router = APIRouter(prefix="/calibration/camera", tags=["camera calibration"])
 
@@ -72,7 +72,7 @@ def solve(worker: WorkerDep, req: SolveRequest | None = None, apply: bool = Fals
     else:
         session = getattr(worker, "handeye_session", None)
         if session is None or not session.samples:
-            raise ApiError("not_found", "no observations given and no hand-eye session frames recorded")
+            raise ApiError(Reason.not_found, "no observations given and no hand-eye session frames recorded")
         images = [ImagePoints(f"sample{k}", tuple(s.ids), s.uv) for k, s in enumerate(session.samples)]
     unknown_ids = {i for im in images for i in im.ids} - set(cal.field.ids)
     if unknown_ids:

@@ -82,7 +82,7 @@ def put_config(request: Request, worker: WorkerDep, patch: ConfigPatch) -> dict[
     try:
         for name, cp in patch.cameras.items():
             if name not in names:
-                raise ApiError("not_found", f"no camera named {name!r}; cameras: {sorted(names)}")
+                raise ApiError(Reason.not_found, f"no camera named {name!r}; cameras: {sorted(names)}")
             old = settings.cameras[names[name]]
             changes = cp.model_dump(exclude_unset=True)
             if "strobe" in changes:
@@ -99,7 +99,7 @@ def put_config(request: Request, worker: WorkerDep, patch: ConfigPatch) -> dict[
     for name, cfg in new_cameras.items():
         error = worker.reconfigure_camera(cfg)
         if error:
-            raise ApiError("unsupported", f"camera {name}: {error}", status=409)
+            raise ApiError(Reason.unsupported, f"camera {name}: {error}", status=409)
         settings.cameras[names[name]] = cfg
     if processing is not None:
         worker.update_processing(processing)

@@ -1,4 +1,4 @@
-"""The guided hand-eye calibration over the API (see ``service/handeye_session.py`` for the steps).
+"""The guided hand-eye calibration over the API (see ``service/runtime/handeye_session.py`` for the steps).
 
 POST   /calibration/handeye/session            plan: proposed flange poses around the field
 GET    /calibration/handeye/session            proposals, samples, motion quality, result
@@ -21,33 +21,21 @@ from api.deps import WorkerDep
 from api.errors import ApiError
 from api.security import Authorized
 from service.core.results import Reason, SolveError
-from service.formats import FormatError
-from service.handeye_session import HandEyeSession, SessionError
-from service.solver_process import SolverCrashed
+from service.runtime.handeye_session import HandEyeSession, SessionError
+from service.runtime.solver_process import SolverCrashed
+from service.store.formats import FormatError
 
 router = APIRouter(prefix="/calibration/handeye/session", tags=["hand-eye calibration"])
 
-_STATUS = {
-    "robot_moving": 409,
-    "not_solved": 409,
-    "not_found": 404,
-    Reason.poor_motion: 422,
-    Reason.degenerate_geometry: 422,
-    Reason.too_few_targets: 409,
-    Reason.not_calibrated: 409,
-    Reason.robot_disconnected: 503,
-    Reason.camera_disconnected: 503,
-}
-
 
 def _err(e: SessionError) -> ApiError:
-    return ApiError(str(e.reason), e.message, status=_STATUS.get(str(e.reason), 409))
+    return ApiError(Reason(e.reason), e.message)  # its status: api/errors.STATUS
 
 
 def _session(worker: Any) -> HandEyeSession:
     s = getattr(worker, "handeye_session", None)
     if s is None:
-        raise ApiError("not_found", "no hand-eye session; start one with POST /calibration/handeye/session")
+        raise ApiError(Reason.not_found, "no hand-eye session; start one with POST /calibration/handeye/session")
     return s
 
 
@@ -62,7 +50,7 @@ def start(worker: WorkerDep, req: StartRequest | None = None) -> dict[str, Any]:
     req = req or StartRequest()
     camera = req.camera or next(iter(worker.processors))
     if camera not in worker.processors:
-        raise ApiError("not_found", f"no camera named {camera!r}")
+        raise ApiError(Reason.not_found, f"no camera named {camera!r}")
     try:
         worker.handeye_session = HandEyeSession.start(worker, camera, req.n_poses)
     except SessionError as e:
@@ -87,11 +75,11 @@ def delete(worker: WorkerDep) -> dict[str, Any]:
 def move(index: int, worker: WorkerDep) -> dict[str, Any]:
     s = _session(worker)
     if not 0 <= index < len(s.proposals):
-        raise ApiError("not_found", f"no proposal #{index}; there are {len(s.proposals)}")
+        raise ApiError(Reason.not_found, f"no proposal #{index}; there are {len(s.proposals)}")
     move_to = getattr(worker.robot, "move_to", None)
     if move_to is None:
         raise ApiError(
-            "unsupported",
+            Reason.unsupported,
             "this robot is moved by its own program: send it to the proposed "
             "T_base_flange (ur_pose_m_rotvec for UR), then record a sample",
             status=409,

@@ -14,8 +14,8 @@ from api.deps import WorkerDep
 from api.errors import STATUS, ApiError
 from api.security import Authorized
 from api.ws import StalledClient, dumps
-from service.annotate import encode_frame
 from service.core.results import Reason
+from service.workflows.annotate import encode_frame
 
 router = APIRouter(tags=["measurement"])
 
@@ -33,7 +33,7 @@ class MeasureRequest(BaseModel):
 
 def _camera(worker: Any, camera: str | None) -> None:
     if camera is not None and camera not in worker.processors and camera != "rig":
-        raise ApiError("not_found", f"no camera named {camera!r}; cameras: {sorted(worker.processors)}")
+        raise ApiError(Reason.not_found, f"no camera named {camera!r}; cameras: {sorted(worker.processors)}")
 
 
 @router.post(

@@ -33,11 +33,13 @@ class FaultRequest(BaseModel):
 @router.post("/faults", dependencies=[Authorized], summary="Inject a device fault into the simulated cell")
 def post_fault(request: Request, worker: WorkerDep, fault: FaultRequest) -> dict[str, Any]:
     if not request.app.state.settings.uses_sim:
-        raise ApiError("not_found", "fault injection exists only in the simulated cell; this cell runs real devices")
+        raise ApiError(
+            Reason.not_found, "fault injection exists only in the simulated cell; this cell runs real devices"
+        )
     try:
         done = worker.inject_fault(fault.device, fault.action, fault.camera)
     except ValueError as e:
         raise ApiError(Reason.bad_input, str(e)) from None
     except LookupError as e:
-        raise ApiError("not_found", str(e.args[0])) from None
+        raise ApiError(Reason.not_found, str(e.args[0])) from None
     return {"ok": True, "done": done}

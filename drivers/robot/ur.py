@@ -29,7 +29,7 @@ starts another.
 Units and frames at the boundary. RTDE's ``actual_TCP_pose`` is
 ``[x, y, z, rx, ry, rz]`` in m and a rotation vector, the *TCP* in the base
 frame, with the TCP offset configured on the controller already applied. It
-becomes ``T_base_tcp`` in mm (:func:`service.core.frames.T_from_ur_pose`) and
+becomes ``T_base_tcp`` in mm (:func:`service.core.geometry.frames.T_from_ur_pose`) and
 then ``T_base_flange = T_base_tcp @ inv_T(T_flange_tcp)``, where
 ``T_flange_tcp`` (4, 4) mm must be the TCP offset set on the controller
 (PolyScope's "Installation > TCP"; convert its m/rotation-vector values with
@@ -61,7 +61,7 @@ import numpy as np
 
 from drivers.base import DriverDisconnected, DriverInitError, DriverUnavailable, RobotInfo, RobotSample
 from drivers.history import RobotHistory
-from service.core.frames import T_from_ur_pose, check_T, inv_T
+from service.core.geometry.frames import T_from_ur_pose, check_T, inv_T
 
 log = logging.getLogger(__name__)
 

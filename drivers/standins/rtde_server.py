@@ -61,7 +61,7 @@ from typing import Any
 
 import numpy as np
 
-from service.core.frames import T_from_ur_pose, inv_T, ur_pose_from_T
+from service.core.geometry.frames import T_from_ur_pose, inv_T, ur_pose_from_T
 
 log = logging.getLogger(__name__)
 

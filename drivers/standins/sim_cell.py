@@ -11,7 +11,7 @@ the server got round to the tick, which is later by its scheduling delay (a
 pose and its timestamp must agree, as on a real controller).
 
 Each stand-in runs in a process of its own (``python -m drivers.standins.sim_cell
---serve rtde|camera``), started and watched by ``service.cell_runtime``: the
+--serve rtde|camera``), started and watched by ``service.runtime.cell_runtime``: the
 ur_rtde client must not share a process with the service's event loop, and a
 stand-in inside the service would live under the service's GIL. For the camera
 that matters most: the fake camera's thread needs the GIL to end each exposure
@@ -42,7 +42,7 @@ import time
 import numpy as np
 
 from drivers.standins.rtde_server import RobotState, RtdeServer
-from service.core.frames import ur_pose_from_T
+from service.core.geometry.frames import ur_pose_from_T
 from service.sim.cell import CellConfig, SimCell
 
 log = logging.getLogger(__name__)

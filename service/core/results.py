@@ -32,6 +32,19 @@ class Reason(StrEnum):
     stale = "stale"  # the newest result is older than a few frame periods: nothing current to serve
     storage_unavailable = "storage_unavailable"  # measured, but not committed: not acknowledged
     solver_unavailable = "solver_unavailable"  # the child process of the long solves died during one
+    # the service's refusals of a request (api/errors.STATUS: every reason's HTTP status)
+    not_found = "not_found"
+    not_solved = "not_solved"  # a session applied before it was solved
+    robot_moving = "robot_moving"  # a hand-eye sample needs the arm at rest
+    unsupported = "unsupported"  # the camera lacks the feature or the value
+    unauthorized = "unauthorized"
+    host_not_allowed = "host_not_allowed"
+    origin_not_allowed = "origin_not_allowed"
+    body_too_large = "body_too_large"
+    header_too_large = "header_too_large"
+    busy = "busy"  # the connection limit is reached
+    method_not_allowed = "method_not_allowed"
+    http_error = "http_error"
 
 
 class SolveError(Exception):

@@ -30,19 +30,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from service.core.codes import RING_OUTER
-from service.core.frames import apply_T, inv_T, make_T
+from service.core.geometry.frames import apply_T, inv_T, make_T
 from service.core.results import Reason, SolveError
+from service.core.robot.kinematics import KinematicModel, nominal_model
+from service.core.targets.codes import RING_OUTER
 from service.sim.render import RenderedFrame, RenderSettings, render_frame
-from service.sim.robot import (
-    JointTrajectory,
-    KinematicModel,
-    aim_flange,
-    iso230_circle,
-    nominal_model,
-    perturbed,
-    trajectory_through_poses,
-)
+from service.sim.robot import JointTrajectory, aim_flange, iso230_circle, perturbed, trajectory_through_poses
 from service.sim.scene import reference_camera, reference_field, reference_pose
 
 Array = NDArray[np.float64]

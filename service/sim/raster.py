@@ -7,7 +7,7 @@ exact distortion with no inverse distortion per sample. Coordinates in the
 plane are in disk radii (``xi``, ``eta``, origin at the disk centre, along the
 target's local x and y); the pattern is the disk ``r <= 1`` and, for coded
 targets, the sectors of the ring ``RING_INNER <= r <= RING_OUTER`` that
-:func:`service.core.codes.bits_of` sets.
+:func:`service.core.targets.codes.bits_of` sets.
 
 A pixel whose square provably lies on one side of every pattern edge (a bound
 from the local Jacobian) takes the pattern value at its centre; every other
@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from service.core.camera_model import BrownFraser
-from service.core.codes import N_BITS, RING_INNER, RING_OUTER, bits_of
+from service.core.geometry.camera_model import BrownFraser
+from service.core.targets.codes import N_BITS, RING_INNER, RING_OUTER, bits_of
 
 Array = NDArray[np.float64]
 

@@ -5,7 +5,7 @@ Image formation, in this order (levels in 8-bit DN, scaled to the bit depth last
 1. Geometry. Each target is a planar pattern in its own plane (normal from
    ``normals_field``, default field +z; local x = field x projected into the
    plane, see :func:`plane_axes_field`): the disk ``r <= R`` and, for a coded
-   target, the ring sectors of :mod:`service.core.codes`. Every sample of a
+   target, the ring sectors of :mod:`service.core.targets.codes`. Every sample of a
    pixel is mapped back to the plane exactly (``ideal_from_pixel`` -> ray ->
    plane -> local x, y), which gives exact perspective and distortion.
 2. Anti-aliasing, inside each target's bounding box only: exact coverage of
@@ -45,10 +45,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import ndtr, ndtri
 
-from service.core.camera_model import BrownFraser
-from service.core.codes import RING_OUTER
-from service.core.field import Field
-from service.core.frames import apply_T, check_T, inv_T
+from service.core.geometry.camera_model import BrownFraser
+from service.core.geometry.frames import apply_T, check_T, inv_T
+from service.core.targets.codes import RING_OUTER
+from service.core.targets.field import Field
 from service.sim.raster import pattern_coverage
 
 Array = NDArray[np.float64]

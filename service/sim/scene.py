@@ -25,10 +25,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from service.core.camera_model import BrownFraser
-from service.core.codes import n_codes
-from service.core.field import Field
-from service.core.frames import make_T
+from service.core.geometry.camera_model import BrownFraser
+from service.core.geometry.frames import make_T
+from service.core.targets.codes import n_codes
+from service.core.targets.field import Field
 
 Array = NDArray[np.float64]
 

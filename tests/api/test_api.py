@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from websockets.sync.client import connect
 
-from service.core.frames import pose_difference
+from service.core.geometry.frames import pose_difference
 
 
 def _wait_ok(live):

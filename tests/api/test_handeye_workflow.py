@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.core.frames import pose_difference
+from service.core.geometry.frames import pose_difference
 from service.settings import load_settings
 from tests.api.conftest import free_port, run_server
 

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from service.core.frames import make_T, pose_difference
+from service.core.geometry.frames import make_T, pose_difference
 from service.settings import CameraConfig, load_settings
 from tests.api.conftest import free_port, run_server
 

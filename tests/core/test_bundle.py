@@ -13,14 +13,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from service.core.bundle import Datum, ImagePoints, ScaleBar, calibrate_camera, network_geometry
-from service.core.bundle_model import BundleModel, ExtraRows
-from service.core.bundle_solve import gauge_basis, params_from_T
-from service.core.camera_model import PARAMETER_NAMES, BrownFraser
-from service.core.field import Field
-from service.core.frames import inv_T
-from service.core.resection import resect
+from service.core.calib.bundle import Datum, ImagePoints, ScaleBar, calibrate_camera, network_geometry
+from service.core.calib.bundle_model import BundleModel, ExtraRows
+from service.core.calib.bundle_solve import gauge_basis, params_from_T
+from service.core.geometry.camera_model import PARAMETER_NAMES, BrownFraser
+from service.core.geometry.frames import inv_T
+from service.core.pose.resection import resect
 from service.core.results import Reason, SolveError
+from service.core.targets.field import Field
 from service.sim import scene
 
 NOISE_PX = 0.05

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from service.core.camera_model import BrownFraser
-from service.core.opencv_compat import brown_from_opencv, opencv_from_brown
+from service.core.geometry.camera_model import BrownFraser
+from service.core.geometry.opencv_compat import brown_from_opencv, opencv_from_brown
 
 
 def test_inverse_correction_agrees_with_forward_over_whole_sensor(reference_camera):

@@ -16,10 +16,10 @@ import cv2
 import numpy as np
 import pytest
 
-from service.core import codes as C
-from service.core.decode import read_code, read_codes
-from service.core.field import Field
-from service.core.frames import apply_T, inv_T
+from service.core.geometry.frames import apply_T, inv_T
+from service.core.targets import codes as C
+from service.core.targets.decode import read_code, read_codes
+from service.core.targets.field import Field
 from service.sim.render import RenderSettings, plane_axes_field, render_frame
 from service.sim.scene import reference_camera, reference_field, reference_pose
 
@@ -317,7 +317,7 @@ def test_given_background_level_reads_the_same_code(rng):
 def test_ring_samples_are_those_of_cv2_remap(dtype, scale, rng):
     # The compiled reader samples as the former vectorised one did through cv2.remap (positions
     # rounded to 1/32 px; 8-bit in fixed point): the same readings, at a fraction of the cost.
-    from service.core import decode_kernel
+    from service.core._kernels import decode_kernel
 
     image = (rng.integers(0, 256, (40, 60)) * scale).astype(dtype)
     e = np.array([29.3, 19.7, 6.1, 4.2, 0.7])

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
-from service.core.codes_micmac import (
+from service.core.targets.codes_micmac import (
     N_BITS,
     RING_INNER,
     RING_OUTER,

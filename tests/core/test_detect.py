@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from service.core.detect import REASONS, Blobs, DetectSettings, detect_blobs, measure_windows
-from service.core.field import Field
-from service.core.frames import apply_T, inv_T
+from service.core.geometry.frames import apply_T, inv_T
 from service.core.results import Reason, SolveError
+from service.core.targets.detect import REASONS, Blobs, DetectSettings, detect_blobs, measure_windows
+from service.core.targets.field import Field
 from service.sim.render import RenderSettings, render_frame
 from service.sim.scene import reference_camera, reference_field, reference_pose
 

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from service.core.detect import DetectSettings, detect_blobs, measure_windows
-from service.pipeline import FrameMeasurer
+from service.core.targets.detect import DetectSettings, detect_blobs, measure_windows
+from service.pipeline.measure import FrameMeasurer
 from service.sim.render import RenderSettings, render_frame
 from service.sim.scene import reference_camera, reference_field, reference_pose
 
@@ -196,7 +196,7 @@ def test_measure_windows_follows_the_given_noise():
 
 
 def test_a_working_range_narrows_the_areas_to_the_targets_the_field_can_show():
-    from service.pipeline import detect_settings_for_range
+    from service.pipeline.measure import detect_settings_for_range
 
     camera, field = reference_camera(), reference_field()
     detect = detect_settings_for_range(DetectSettings(), field, camera, (800.0, 1300.0))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.core.detect import detect_blobs, measure_windows
+from service.core.targets.detect import detect_blobs, measure_windows
 from service.sim.render import RenderSettings, render_frame
 from service.sim.scene import reference_camera, reference_field, reference_pose
 

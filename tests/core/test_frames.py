@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.core import frames as F
+from service.core.geometry import frames as F
 
 
 def random_T(rng):

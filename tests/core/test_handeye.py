@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.core import handeye as H
-from service.core.frames import assert_T, inv_T, make_T, pose_difference
+from service.core.calib import handeye as H
+from service.core.geometry.frames import assert_T, inv_T, make_T, pose_difference
 from service.core.results import Reason, SolveError
 
 SIGMA_ROBOT = (0.1, 0.01)  # mm, deg

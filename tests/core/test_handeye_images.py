@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.core.frames import inv_T, make_T, pose_difference
-from service.core.handeye import calibrate_handeye
-from service.core.handeye_images import ImageSample, refine_handeye_on_images
-from service.core.identify import project_field
-from service.core.resection import resect
+from service.core.calib.handeye import calibrate_handeye
+from service.core.calib.handeye_images import ImageSample, refine_handeye_on_images
+from service.core.geometry.frames import inv_T, make_T, pose_difference
+from service.core.pose.resection import resect
 from service.core.results import SolveError
+from service.core.targets.identify import project_field
 from service.sim.cell import CellConfig, SimCell
 
 

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.core.frames import apply_T, assert_T, inv_T, make_T, pose_difference
-from service.core.intersection import (
+from service.core.geometry.frames import apply_T, assert_T, inv_T, make_T, pose_difference
+from service.core.geometry.similarity import rigid_transform, rigid_transform_with_covariance
+from service.core.pose.intersection import (
     Rig,
     epipolar_matches,
     intersect_rays,
@@ -15,7 +16,6 @@ from service.core.intersection import (
     pose_from_intersection,
 )
 from service.core.results import Reason, SolveError
-from service.core.similarity import rigid_transform, rigid_transform_with_covariance
 
 SIGMA_PX = 0.1
 

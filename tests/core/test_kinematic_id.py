@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.core.kinematic_id import identify_kinematics
 from service.core.results import Reason, SolveError
-from service.sim.robot import kr15, perturbed
+from service.core.robot.identification import identify_kinematics
+from service.core.robot.kinematics import kr15
+from service.sim.robot import perturbed
 
 NOISE_MM = 0.02
 NOISE_RAD = NOISE_MM / 1000.0  # what 0.02 mm means across a 1 m target field

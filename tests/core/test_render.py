@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.core.camera_model import BrownFraser
-from service.core.codes import N_BITS, RING_INNER, RING_OUTER, bits_of
-from service.core.field import Field
-from service.core.frames import apply_T, inv_T, make_T
+from service.core.geometry.camera_model import BrownFraser
+from service.core.geometry.frames import apply_T, inv_T, make_T
+from service.core.targets.codes import N_BITS, RING_INNER, RING_OUTER, bits_of
+from service.core.targets.field import Field
 from service.sim.raster import ideal_grid
 from service.sim.render import RenderSettings, plane_axes_field, render_frame
 from service.sim.scene import reference_camera, reference_field, reference_pose

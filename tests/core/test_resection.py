@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.core.camera_model import BrownFraser
-from service.core.frames import apply_T, inv_T, make_T
-from service.core.resection import ResectionResult, resect, resect_closed_form
+from service.core.geometry.camera_model import BrownFraser
+from service.core.geometry.frames import apply_T, inv_T, make_T
+from service.core.pose.resection import ResectionResult, resect, resect_closed_form
 from service.core.results import Reason, SolveError
 
 SIGMA_PX = 0.05

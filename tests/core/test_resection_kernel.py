@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.core.camera_model import BrownFraser
-from service.core.resection import SNOOPING_ALPHA, SNOOPING_SIGMA_FLOOR_PX, resect
-from service.core.resection_closed_form import _centre_planar, _rotation_from_centre, resect_closed_form
+from service.core.geometry.camera_model import BrownFraser
+from service.core.pose.resection import SNOOPING_ALPHA, SNOOPING_SIGMA_FLOOR_PX, resect
+from service.core.pose.resection_closed_form import _centre_planar, _rotation_from_centre, resect_closed_form
 from service.core.results import SolveError
 from tests.core.test_resection import plate_scene, volume_scene
 

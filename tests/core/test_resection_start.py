@@ -18,19 +18,19 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from service import formats
-from service.core import resection
-from service.core.camera_model import BrownFraser
-from service.core.codes import AICON14
-from service.core.decode import read_codes
-from service.core.detect import DetectSettings, detect_blobs
-from service.core.frames import apply_T, inv_T
-from service.core.identify import match_coded
-from service.core.resection import resect, resect_closed_form
-from service.core.resection_closed_form import coplanar_majority
+from service.core.geometry.camera_model import BrownFraser
+from service.core.geometry.frames import apply_T, inv_T
+from service.core.pose import resection
+from service.core.pose.resection import resect, resect_closed_form
+from service.core.pose.resection_closed_form import coplanar_majority
 from service.core.results import PoseResult, Reason
-from service.pipeline import FrameMeasurer, MeasureSettings
+from service.core.targets.codes import AICON14
+from service.core.targets.decode import read_codes
+from service.core.targets.detect import DetectSettings, detect_blobs
+from service.core.targets.identify import match_coded
+from service.pipeline.measure import FrameMeasurer, MeasureSettings
 from service.sim.scene import reference_camera
+from service.store import formats
 from tests.conftest import shared_data
 from tests.core.test_resection import camera_looking_at, pose_error
 

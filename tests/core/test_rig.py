@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.core.frames import inv_T, make_T
-from service.core.intersection import intersect_rays
+from service.core.calib.rig import RigImage, calibrate_rig, rig_from_dict
+from service.core.geometry.frames import inv_T, make_T
+from service.core.pose.intersection import intersect_rays
 from service.core.results import Reason, SolveError
-from service.core.rig import RigImage, calibrate_rig, rig_from_dict
 from tests.core.test_bundle import NOISE_PX, TRUE_CAMERA, convergent_poses, field_3d
 
 SECOND_CAMERA = dataclasses.replace(TRUE_CAMERA, c_mm=12.4, x0_mm=-0.02, K1=-9e-4)

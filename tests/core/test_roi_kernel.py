@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.core.roi_kernel import gather_found_kernel, window_half_size_kernel
+from service.core._kernels.roi_kernel import gather_found_kernel, window_half_size_kernel
 
 
 def test_window_sizes_equal_the_numpy_formula_for_coded_and_uncoded_targets(rng):

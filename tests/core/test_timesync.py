@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.core.frames import T_from_rotvec, pose_difference
-from service.core.timesync import ClockMapper, estimate_time_offset_s, fit_lower_envelope, pose_at
+from service.core.geometry.frames import T_from_rotvec, pose_difference
+from service.core.pose.timesync import ClockMapper, estimate_time_offset_s, fit_lower_envelope, pose_at
 
 
 def _events(rng, n, rate_hz, offset_ns, drift_ppm, latency_ns, jitter_ns):

@@ -1,4 +1,4 @@
-"""The stand-ins of the simulated cell, as ``service.cell_runtime`` runs them: their own processes, watched.
+"""The stand-ins of the simulated cell, as ``service.runtime.cell_runtime`` runs them: their own processes, watched.
 
 A stand-in whose process dies (here: SIGKILL) is started again on the same address with the same cell
 and epoch, so the real UR driver reading it finds samples of the same motion again within seconds, and
@@ -23,8 +23,8 @@ pytest.importorskip("drivers.standins.gv_camera", reason="PyGObject and Aravis 0
 
 from drivers.base import DriverDisconnected  # noqa: E402
 from drivers.robot.ur import URRobot  # noqa: E402
-from service.cell_runtime import CellRuntime  # noqa: E402
-from service.core.frames import pose_difference  # noqa: E402
+from service.core.geometry.frames import pose_difference  # noqa: E402
+from service.runtime.cell_runtime import CellRuntime  # noqa: E402
 from service.settings import load_settings  # noqa: E402
 
 RTDE_ADDRESS = "127.0.0.16"  # this file's own (see test_ur_rtde.py for the others)
@@ -91,7 +91,7 @@ def test_the_standins_stop_with_the_service_that_started_them(tmp_path: Path) ->
     # a service killed outright (no stop()) must not leave its stand-ins holding their addresses
     script = (
         "import sys, time\n"
-        "from service.cell_runtime import CellRuntime\n"
+        "from service.runtime.cell_runtime import CellRuntime\n"
         "from service.settings import load_settings\n"
         f"r = CellRuntime(load_settings(None, state_dir={str(tmp_path)!r}, sim__transport='standins'))\n"
         f"r.rtde_address = {RTDE_ADDRESS!r}\n"

@@ -10,7 +10,7 @@ import pytest
 from drivers.base import CameraSettings, StrobeSettings
 from drivers.camera.sim import SimCamera
 from drivers.robot.sim import SimRobot
-from service.pairing import FramePairer
+from service.runtime.pairing import FramePairer
 from service.sim.cell import CellConfig, SimCell
 
 
@@ -95,7 +95,7 @@ def test_one_frame_adds_exactly_one_point_to_the_camera_clock():
 
 def test_a_device_clock_counting_from_1970_keeps_its_window():
     # GigE Vision stand-ins and many cameras stamp in ns since 1970: above 2**53, where floats round
-    from service.core.timesync import ClockMapper
+    from service.core.pose.timesync import ClockMapper
 
     mapper = ClockMapper(min_latency_ns=0.5e6)
     t0_device, t0_host = 1_796_142_625_761_890_000, 518_000_000_000
@@ -110,7 +110,7 @@ def test_a_device_clock_counting_from_1970_keeps_its_window():
 
 def test_an_event_out_of_order_is_left_out_not_taken_for_a_reset():
     # a robot package overtaken by the next one (its arrival jittered): its controller time is one tick back
-    from service.core.timesync import ClockMapper
+    from service.core.pose.timesync import ClockMapper
 
     mapper = ClockMapper(window=2000, min_latency_ns=1e5, refit_every=50)
     t_robot = np.arange(500) * 2e6

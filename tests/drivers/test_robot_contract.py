@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from drivers.base import DriverDisconnected, RobotDriver
-from service.core.frames import check_T
+from service.core.geometry.frames import check_T
 from tests.drivers.conftest import robot_factories, use
 
 FACTORIES = robot_factories()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from drivers.base import CameraSettings, StrobeSettings
-from service.core.frames import pose_difference
+from service.core.geometry.frames import pose_difference
 from service.sim.cell import CellConfig, SimCell
 
 pytest.importorskip("rtde_receive", reason="ur-rtde is installed by deploy/dev.sh (test extras)")
@@ -44,7 +44,7 @@ def test_aravis_driver_sees_the_simulated_cell_through_the_fake_gige_camera():
     pytest.importorskip("gi", reason="PyGObject is linked into the venv by deploy/dev.sh")
     from drivers.camera.aravis import AravisCamera
     from drivers.standins.gv_camera import GvStandIn, cell_frame_source
-    from service.pipeline import FrameMeasurer
+    from service.pipeline.measure import FrameMeasurer
 
     cell = SimCell(CellConfig(program="hold"))
     with GvStandIn(cell_frame_source(cell), width=cell.camera.width, height=cell.camera.height):

@@ -27,8 +27,8 @@ import pytest
 pytest.importorskip("rtde_receive", reason="ur-rtde is installed by deploy/dev.sh (test extras)")
 pytest.importorskip("drivers.standins.gv_camera", reason="PyGObject and Aravis 0.8 (deploy/dev.sh)")
 
+from service.runtime.worker import Worker  # noqa: E402
 from service.settings import load_settings  # noqa: E402
-from service.worker import Worker  # noqa: E402
 
 RTDE_ADDRESS = "127.0.0.13"  # the tests' own loopback address (see test_ur_rtde.py for the others)
 SETTLE_S = 8.0  # from the first paired stand-in frame: the clock mappings have converged by then
@@ -84,7 +84,7 @@ def _bracketed(t_s: np.ndarray, t_direct_s: np.ndarray) -> np.ndarray:
 def test_standins_deviation_matches_direct_mode_within_sigma(tmp_path: Path) -> None:
     workers = {}
     for mode in ("direct", "standins"):
-        # the stand-ins' latencies are stated by the runtime (service.cell_runtime), the direct one's here
+        # the stand-ins' latencies are stated by the runtime (service.runtime.cell_runtime), the direct one's here
         latency = SIM_ROBOT_LATENCY_S if mode == "direct" else None
         settings = load_settings(None, state_dir=tmp_path / mode, sim__transport=mode, sim__seed=0,
                                  sim__program="circle", robot__transport_latency_s=latency)

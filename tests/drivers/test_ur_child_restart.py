@@ -62,9 +62,9 @@ def test_killing_the_rtde_child_drops_the_link_at_once_and_a_new_child_recovers_
 
 
 def test_the_worker_reports_a_killed_rtde_child_before_it_reconnects(tmp_path) -> None:
-    from service.acquisition import DeviceState
+    from service.runtime.acquisition import DeviceState
+    from service.runtime.worker import Worker
     from service.settings import load_settings
-    from service.worker import Worker
 
     host = "127.0.0.18"  # this test's own address
     settings = load_settings(None, state_dir=str(tmp_path))

@@ -20,7 +20,7 @@ from drivers.base import DriverDisconnected, DriverInitError, RobotDriver
 from drivers.registry import make_robot
 from drivers.robot.ur import URRobot
 from drivers.standins import rtde_server as rs
-from service.core.frames import T_from_ur_pose, pose_difference
+from service.core.geometry.frames import T_from_ur_pose, pose_difference
 
 # --- the stand-in's protocol, pure --------------------------------------------------------------
 

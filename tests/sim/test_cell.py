@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.core.frames import inv_T, pose_difference
+from service.core.geometry.frames import inv_T, pose_difference
 from service.core.results import PoseResult
-from service.pipeline import FrameMeasurer
+from service.pipeline.measure import FrameMeasurer
 from service.sim.cell import CellConfig, SimCell
 from service.sim.robot import JointTrajectory
 

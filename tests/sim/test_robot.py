@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.core.frames import make_T, pose_difference
+from service.core.geometry.frames import make_T, pose_difference
 from service.core.results import Reason, SolveError
+from service.core.robot.kinematics import kr15, ur10e
 from service.sim.robot import (
     ALPHA_ERROR_DEG,
     BASE_TILT_DEG,
@@ -15,11 +16,9 @@ from service.sim.robot import (
     LENGTH_ERROR_MM,
     JointTrajectory,
     iso230_circle,
-    kr15,
     perturbed,
     random_workspace_poses,
     trajectory_through_poses,
-    ur10e,
 )
 
 # a working pose of each arm (tool pointing down in front of the robot) and the region around it

@@ -1,0 +1,1 @@
+"""``posecell bench``: accuracy, speed with its condition matrix, faults."""

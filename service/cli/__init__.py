@@ -1,0 +1,1 @@
+"""The ``posecell`` command line; the verbs and the entry point are in :mod:`service.cli.main`."""

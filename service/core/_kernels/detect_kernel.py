@@ -1,0 +1,476 @@
+"""The per-window measurement of :mod:`service.core.targets.detect`, compiled (numba).
+
+One loop over the windows does what :mod:`~service.core.targets.detect` describes for a
+window: the background plane through the rim, the moments up to the fourth, the
+plateau, the ellipse, the shape statistics and the fill's mismatch. Written by
+hand as a loop because a vectorised form needs a stack of equal windows (one
+batch per radius) and a hundred array passes per batch, which cost more than
+the arithmetic on a few hundred small windows (ROI tracking at >= 1 kHz).
+
+:func:`measure_windows_kernel` returns the measurements as the rows of one
+(NF, n) array, named by the constants below (``detect._Measured`` holds them
+as fields); :func:`assess_kernel` turns them into reasons, sigma_px and fill;
+:mod:`service.core._kernels.contour_kernel` does the full frame's contours and
+:mod:`service.core._kernels.crowd_kernel` the work on blobs near each other.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+from numba import njit
+
+from service.core._kernels import contour_kernel, crowd_kernel, noise_kernel
+
+# rows of the float output
+UV, ELLIPSE, FLUX, LEVEL, PEAK, BACKGROUND, SB2, K_SHOT, VAR_BASE, VAR_PER_K = 0, 0, 5, 6, 7, 8, 9, 10, 11, 12
+MISMATCH, NOISE_BG, M3SQ, KURT, KURT_MODEL, FLAT_TOP, VAR_MAJOR, SUMS = 13, 14, 15, 16, 17, 18, 19, 20
+NF = 27
+
+# reassociation lets the pixel sums vectorise; NaN and inf keep their meaning (no nnan/ninf)
+_FAST = {"reassoc", "contract", "arcp"}
+
+
+@njit(cache=True, inline="always")
+def _fmin(a: float, b: float) -> float:  # np.fmin: NaN-ignoring
+    if a != a:
+        return b
+    if b != b:
+        return a
+    return a if a < b else b
+
+
+@njit(cache=True, inline="always")
+def _fmax(a: float, b: float) -> float:  # np.fmax: NaN-ignoring
+    if a != a:
+        return b
+    if b != b:
+        return a
+    return a if a > b else b
+
+
+@njit(cache=True, inline="always")
+def _maximum(a: float, b: float) -> float:  # np.maximum: NaN-propagating
+    if a != a or a > b:
+        return a
+    return b
+
+
+@njit(cache=True, error_model="numpy", fastmath=_FAST)
+def _rows(h, w, wi, sums):
+    """Per row dv = a - h of the circle of radius h + 1/2: its half width ``w`` and the half
+    width ``wi`` of the disk inside the rim (distance <= h - 1; -1 where the row misses it); the
+    circle's sums of du^0, du^2, du^4, du^2 dv^2, du^6, du^4 dv^2, du^8."""
+    r2, ri2 = (h + 0.5) ** 2, (h - 1.0) ** 2
+    sums[:] = 0.0
+    for a in range(2 * h + 1):
+        dv2 = (a - h) * (a - h)
+        w[a] = int(np.sqrt(r2 - dv2))
+        q = ri2 - dv2
+        if q < 0:
+            wi[a] = -1
+        else:
+            k = int(np.sqrt(q))
+            while (k + 1) * (k + 1) <= q:
+                k += 1
+            while k * k > q:
+                k -= 1
+            wi[a] = k
+        e2 = e4 = e6 = e8 = 0.0
+        for d in range(1, w[a] + 1):
+            d2 = float(d * d)
+            e2 += 2.0 * d2
+            e4 += 2.0 * d2 * d2
+            e6 += 2.0 * d2 * d2 * d2
+            e8 += 2.0 * d2 * d2 * d2 * d2
+        sums[0] += 2 * w[a] + 1
+        sums[1] += e2
+        sums[2] += e4
+        sums[3] += e2 * dv2
+        sums[4] += e6
+        sums[5] += e4 * dv2
+        sums[6] += e8
+
+
+@njit(cache=True, error_model="numpy", fastmath=_FAST)
+def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff):
+    """Measure the blob in the circle of radius ``half + 1/2`` about each (cu, cv).
+
+    Parameters
+    ----------
+    img : (H, W) uint8 or uint16
+    cu, cv, half : (n,) int, px
+    placed : (n,) bool -- the window lies inside the image (others give zeros and a crossed rim)
+    seg : (n,) float, DN -- each window's segmentation level above its background (the noise's)
+    full : float, DN -- saturation level
+    buf : (K,) float32 -- pixel values replacing the image's in crowded windows (others masked)
+    boff : (n,) int -- each window's s*s values' offset into ``buf``, -1: read the image
+
+    Returns
+    -------
+    out : (NF, n) float -- the rows named at the top of the module
+    n_sat : (n,) int
+    edge : (n,) bool
+    """
+    n = cu.size
+    out = np.zeros((NF, n))
+    n_sat = np.zeros(n, dtype=np.intp)
+    edge = np.ones(n, dtype=np.bool_)
+    hmax = 0
+    for i in range(n):
+        if placed[i] and half[i] > hmax:
+            hmax = half[i]
+    s_max = 2 * hmax + 1
+    # per window radius, once: the rows' half widths and the circle's sums
+    wtab, witab = np.zeros((hmax + 1, s_max), dtype=np.intp), np.zeros((hmax + 1, s_max), dtype=np.intp)
+    stab, have = np.zeros((hmax + 1, 7)), np.zeros(hmax + 1, dtype=np.bool_)
+    rb = np.empty(8 * s_max + 8)  # rim values and their du, dv
+    ru = np.empty(8 * s_max + 8)
+    rv = np.empty(8 * s_max + 8)
+    for i in range(n):
+        if not placed[i]:
+            continue
+        h = half[i]
+        w, wi, sums = wtab[h], witab[h], stab[h]
+        if not have[h]:
+            _rows(h, w, wi, sums)
+            have[h] = True
+        s = 2 * h + 1
+        u0, v0 = cu[i] - h, cv[i] - h
+        o = boff[i]
+        if o < 0:
+            n_sat[i], edge[i] = _window(img, v0, u0, img, v0, u0, h, seg[i], full, w, wi, sums, rb, ru, rv, out, i)
+        else:
+            P = buf[o : o + s * s].reshape(s, s)
+            n_sat[i], edge[i] = _window(P, 0, 0, img, v0, u0, h, seg[i], full, w, wi, sums, rb, ru, rv, out, i)
+    return out, n_sat, edge
+
+
+@njit(cache=True, error_model="numpy", fastmath=_FAST)
+def _window(P, pv, ph, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, i):
+    """One window: the values to measure are ``P[pv:pv + s, ph:ph + s]``, the image's (for the
+    peak and saturation) ``img[v0:v0 + s, u0:u0 + s]``. Rows are taken one at a time: a 1-D row of
+    a C array is contiguous, which lets the sums vectorise. Writes column ``i`` of ``out`` and
+    returns (saturated pixels, rim crossed)."""
+    s = 2 * h + 1
+    r2 = (h + 0.5) ** 2
+    # -- the peak and the saturated pixels, of the image's values
+    pk = img[v0, u0]
+    for a in range(s):
+        seg_row = img[v0 + a, u0 : u0 + s]  # from 0: vectorises (see the moments)
+        for t in range(s):
+            pk = max(pk, seg_row[t])
+    peak = float(pk)
+    ns = 0
+    if peak >= full:
+        for a in range(s):
+            for b in range(h - w[a], h + w[a] + 1):
+                if img[v0 + a, u0 + b] >= full:
+                    ns += 1
+    # -- background plane through the rim (the outer 1.5 px), fitted to its pixels that are not bright.
+    # A rim with nothing bright on it is symmetric, so its normal equations are diagonal; only a rim
+    # crossed by something bright needs a solve, and it counts as crossed when >= 2 pixels are bright
+    k = 0
+    for a in range(s):
+        dv = a - h
+        wa, wia, row = w[a], wi[a], P[pv + a]
+        for ku in range(-wa, -wia):
+            rb[k], ru[k], rv[k] = row[ph + h + ku], ku, dv
+            k += 1
+        for ku in range(max(wia + 1, -wia), wa + 1):
+            rb[k], ru[k], rv[k] = row[ph + h + ku], ku, dv
+            k += 1
+    s0 = s1 = s2 = sbb = ruu = 0.0
+    for j in range(k):
+        s0 += rb[j]
+        s1 += rb[j] * ru[j]
+        s2 += rb[j] * rv[j]
+        sbb += rb[j] * rb[j]
+        ruu += ru[j] * ru[j]
+    mean_thr = s0 / k + seg
+    n_bright = 0
+    for j in range(k):
+        if rb[j] > mean_thr:
+            n_bright += 1
+    b0, b1, b2 = s0 / k, s1 / ruu, s2 / ruu
+    rss = sbb - (b0 * s0 + b1 * s1 + b2 * s2)
+    m_used, ruu_used, crossed = float(k), ruu, False
+    if n_bright > 0:  # the level of what is not bright, then a plane through what is below it + seg
+        kk, sk = 0, 0.0
+        for j in range(k):
+            if not rb[j] > mean_thr:
+                kk += 1
+                sk += rb[j]
+        thr = sk / max(kk, 1) + seg
+        n00 = n01 = n02 = n11 = n12 = n22 = r0 = r1 = r2_ = dbb = 0.0
+        for j in range(k):
+            if rb[j] <= thr:
+                x, du, dv = rb[j], ru[j], rv[j]
+                n00 += 1.0
+                n01 += du
+                n02 += dv
+                n11 += du * du
+                n12 += du * dv
+                n22 += dv * dv
+                r0 += x
+                r1 += x * du
+                r2_ += x * dv
+                dbb += x * x
+        crossed = n00 <= k - 2
+        if n00 < 6:
+            n00, n01, n02, n11, n12, n22, crossed = 1.0, 0.0, 0.0, 1.0, 0.0, 1.0, True
+        # the 3 x 3 symmetric solve by cofactors
+        c00, c01, c02 = n11 * n22 - n12 * n12, n02 * n12 - n01 * n22, n01 * n12 - n02 * n11
+        c11, c12, c22 = n00 * n22 - n02 * n02, n01 * n02 - n00 * n12, n00 * n11 - n01 * n01
+        det = n00 * c00 + n01 * c01 + n02 * c02
+        b0 = (c00 * r0 + c01 * r1 + c02 * r2_) / det
+        b1 = (c01 * r0 + c11 * r1 + c12 * r2_) / det
+        b2 = (c02 * r0 + c12 * r1 + c22 * r2_) / det
+        rss = dbb - (b0 * r0 + b1 * r1 + b2 * r2_)
+        m_used, ruu_used = n00, 0.5 * (n11 + n22)
+    sb2 = max(rss, 0.0) / max(m_used - 3.0, 1.0)
+    # -- moments up to the fourth over the circle, the plane's offset removed; the circle's sums
+    m00 = m10 = m01 = m20 = m11 = m02 = m30 = m21 = m12 = m03 = m40 = m31 = m22 = m13 = m04 = 0.0
+    for a in range(s):
+        dv = float(a - h)
+        q0 = q1 = q2 = q3 = q4 = 0.0
+        wa = w[a]
+        # a slice indexed from 0: the compiler then knows the indices are not negative and vectorises
+        seg_row = P[pv + a, ph + h - wa : ph + h + wa + 1]
+        for t in range(2 * wa + 1):
+            du = float(t - wa)
+            p = seg_row[t] - b0
+            pu = p * du
+            pu2 = pu * du
+            q0 += p
+            q1 += pu
+            q2 += pu2
+            q3 += pu2 * du
+            q4 += pu2 * du * du
+        dv2 = dv * dv
+        m00 += q0
+        m10 += q1
+        m01 += q0 * dv
+        m20 += q2
+        m11 += q1 * dv
+        m02 += q0 * dv2
+        m30 += q3
+        m21 += q2 * dv
+        m12 += q1 * dv2
+        m03 += q0 * dv2 * dv
+        m40 += q4
+        m31 += q3 * dv
+        m22 += q2 * dv2
+        m13 += q1 * dv2 * dv
+        m04 += q0 * dv2 * dv2
+    a0, a2, a4, a22 = sums[0], sums[1], sums[2], sums[3]
+    S = m00
+    # raw moments about the window centre, over the flux; the slopes' odd moments removed
+    m10 -= b1 * a2
+    m01 -= b2 * a2
+    m30 -= b1 * a4
+    m21 -= b2 * a22
+    m12 -= b1 * a22
+    m03 -= b2 * a4
+    uc, vc, m20, m11, m02 = m10 / S, m01 / S, m20 / S, m11 / S, m02 / S
+    m30, m21, m12, m03 = m30 / S, m21 / S, m12 / S, m03 / S
+    m40, m31, m22, m13, m04 = m40 / S, m31 / S, m22 / S, m13 / S, m04 / S
+    mu_uu, mu_uv, mu_vv = m20 - uc * uc, m11 - uc * vc, m02 - vc * vc
+    finite = np.isfinite(uc) and np.isfinite(vc)
+    # -- the plateau: the 3 x 3 pixels about the rounded centroid
+    ci = min(max(int(np.rint(uc)) if finite else 0, 1 - h), h - 1) + h
+    cj = min(max(int(np.rint(vc)) if finite else 0, 1 - h), h - 1) + h
+    c1 = cc2 = 0.0
+    for a in range(cj - 1, cj + 2):
+        for b in range(ci - 1, ci + 2):
+            x = 0.0
+            if (a - h) ** 2 + (b - h) ** 2 <= r2:
+                x = P[pv + a, ph + b] - b0
+            c1 += x
+            cc2 += x * x
+    slope_c = b1 * uc + b2 * vc
+    level, core_var = c1 / 9.0 - slope_c, (cc2 - c1 * c1 / 9.0) / 8.0
+    # -- the disk's edge: second moments less the blur variance
+    half_tr, root = 0.5 * (mu_uu + mu_vv), np.sqrt(0.25 * (mu_uu - mu_vv) ** 2 + mu_uv * mu_uv)
+    dq = S / (4.0 * np.pi * level)  # a b / 4
+    blur = _fmax(_fmin(half_tr - np.sqrt(root * root + dq * dq), 0.9 * (half_tr - root)), 0.0)
+    a_ax, b_ax = 2.0 * np.sqrt(half_tr + root - blur), 2.0 * np.sqrt(half_tr - root - blur)
+    ang = 0.5 * np.arctan2(2.0 * mu_uv, mu_uu - mu_vv)
+    good = finite and S > 0 and level > 0 and b_ax > 0
+    # -- third central moments (zero for a centrally symmetric blob), as complex moments:
+    # |mu3|^2 = (|E[z^3]|^2 + 3 |E[z^2 z*]|^2) / 4, z = x + i y about the centroid
+    z, z2, zz = complex(uc, vc), complex(m20 - m02, 2.0 * m11), m20 + m02
+    a3 = complex(m30 - 3 * m12, 3 * m21 - m03) - 3 * z * z2 + 2 * z * z * z
+    b3 = complex(m30 + m12, m21 + m03) - 2 * z * zz - z.conjugate() * z2 + 2 * z * z * z.conjugate()
+    m3sq = 0.25 * (abs(a3) ** 2 + 3 * abs(b3) ** 2)
+    # -- fourth central moment along the major axis
+    c, sn = np.cos(ang), np.sin(ang)
+    cc, cs, ss2 = c * c, c * sn, sn * sn
+    p0, e2 = c * uc + sn * vc, cc * m20 + 2 * cs * m11 + ss2 * m02
+    e3 = c * cc * m30 + 3 * cc * sn * m21 + 3 * c * ss2 * m12 + sn * ss2 * m03
+    e4 = cc * cc * m40 + 4 * cc * cs * m31 + 6 * cc * ss2 * m22 + 4 * cs * ss2 * m13 + ss2 * ss2 * m04
+    var_major, qa4 = e2 - p0 * p0, a_ax * a_ax / 4.0
+    kurt = (e4 - 4 * p0 * e3 + 6 * p0 * p0 * e2 - 3 * p0**4) / (var_major * var_major)
+    kurt_model = (2 * qa4 * qa4 + 6.0 * blur * qa4 + 3.0 * blur * blur) / (qa4 + blur) ** 2
+    # -- fill: the ellipse drawn as clip(level / 2 + k (1 - rho^2), 0, level), rho = 1 on its edge,
+    # a ramp of the blur's width; rho^2 is quadratic in (du, dv); the mismatch is sum |pixels - it|
+    mismatch = np.inf
+    if good:
+        g_uu, g_vv = mu_uu - blur, mu_vv - blur
+        det4 = 4.0 * (g_uu * g_vv - mu_uv * mu_uv)
+        kq = 0.5 * level * np.sqrt(a_ax * b_ax) / _fmin(_fmax(np.sqrt(2.0 * np.pi * blur), 0.5), 4.0) / det4
+        qa, qb, qc = kq * g_vv, -kq * mu_uv, kq * g_uu
+        k0 = 0.5 * level + kq * det4 - qa * uc * uc - 2 * qb * uc * vc - qc * vc * vc
+        k1, k2, k3, k4, k5 = 2 * (qa * uc + qb * vc), 2 * (qb * uc + qc * vc), -qa, -2 * qb, -qc
+        mis = 0.0
+        for a in range(s):
+            dv = float(a - h)
+            row0, row1 = k0 + k2 * dv + k5 * dv * dv, k1 + k4 * dv
+            lo, hi = h - w[a], h + w[a]
+            seg_row = P[pv + a, ph + lo : ph + hi + 1]
+            for b in range(lo):  # outside the circle the pixels count as zero
+                du = float(b - h)
+                mis += min(max(row0 + du * (row1 + k3 * du), 0.0), level)
+            for t in range(hi + 1 - lo):
+                du = float(t + lo - h)
+                mis += abs(min(max(row0 + du * (row1 + k3 * du), 0.0), level) - (seg_row[t] - b0))
+            for b in range(hi + 1, s):
+                du = float(b - h)
+                mis += min(max(row0 + du * (row1 + k3 * du), 0.0), level)
+        mismatch = mis / level
+    area = S / level
+    out[0, i], out[1, i] = uc + (u0 + h), vc + (v0 + h)
+    out[2, i], out[3, i], out[4, i] = a_ax, b_ax, ang
+    out[FLUX, i], out[LEVEL, i], out[PEAK, i] = S, level, peak
+    out[BACKGROUND, i], out[SB2, i] = b0 + slope_c, sb2
+    out[K_SHOT, i] = _maximum(core_var - sb2, 0.0) / level
+    out[VAR_BASE, i] = (
+        0.5 * sb2 * (2.0 * (a2 * a2 / ruu_used - a2) + (uc * uc + vc * vc) * (a0 * a0 / m_used - a0)) / (S * S)
+    )
+    out[VAR_PER_K, i], out[MISMATCH, i] = half_tr / S, mismatch
+    out[NOISE_BG, i] = np.sqrt(2.0 / np.pi * sb2) * _maximum(a0 - area, 0.0) / level
+    out[M3SQ, i], out[KURT, i], out[KURT_MODEL, i] = m3sq, kurt, kurt_model
+    out[FLAT_TOP, i], out[VAR_MAJOR, i] = 1.0 - blur / (half_tr - root), var_major
+    for j in range(7):
+        out[SUMS + j, i] = sums[j]
+    return ns, crossed
+
+
+@njit(cache=True, inline="always")
+def _nan_to_num(x: float) -> float:
+    if x != x:
+        return 0.0
+    if x == np.inf:
+        return np.finfo(np.float64).max
+    if x == -np.inf:
+        return -np.finfo(np.float64).max
+    return x
+
+
+@njit(cache=True, error_model="numpy")
+def assess_kernel(out, n_sat, edge, usable, contrast, limits, codes):
+    """Reason (-1: accepted), sigma_px and fill of each window of :func:`measure_windows_kernel`'s
+    ``out`` (see ``detect._assess`` for the statistics); ``contrast`` (n,) DN: each window's
+    least peak above its background.
+
+    ``limits``: min_area, max_area, max_aspect, min_fill, max_saturated, min_plateau_b,
+    min_flat_top, shape sigma (2), shape floor (2), the largest flux-over-plateau area per moments'
+    ellipse area (for b >= min_plateau_b, and below); ``codes``: the reasons saturated, low
+    contrast, too small, too big, misshapen.
+    """
+    n = out.shape[1]
+    min_area, max_area, max_aspect, min_fill, max_sat, min_b, min_flat = limits[:7]
+    sig0, sig1, floor0, floor1, ratio_flat, ratio_small = limits[7:13]
+    levels = np.full(n, -1, dtype=np.intp)
+    plateau = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        S, level = out[FLUX, i], out[LEVEL, i]
+        area = S / level
+        if n_sat[i] > max_sat:
+            levels[i] = codes[0]
+        elif not (out[PEAK, i] - out[BACKGROUND, i] >= contrast[i] and level > 0):
+            levels[i] = codes[1]
+        elif not area >= min_area:
+            levels[i] = codes[2]
+        elif not area <= max_area:
+            levels[i] = codes[3]
+        plateau[i] = levels[i] < 0 and usable[i] and not edge[i] and out[3, i] >= min_b
+    k = np.median(out[K_SHOT][plateau]) / 0.918 if plateau.any() else 0.0
+    reason, sigma, fill = np.empty(n, dtype=np.intp), np.empty(n), np.empty(n)
+    for i in range(n):
+        a, b = out[2, i], out[3, i]
+        S, level, sb2 = out[FLUX, i], out[LEVEL, i], out[SB2, i]
+        area = S / level
+        sigma[i] = np.sqrt(out[VAR_BASE, i] + k * out[VAR_PER_K, i])
+        tr, area_e = 2.0 * out[VAR_PER_K, i] * S, np.pi * a * b
+        mis = _maximum(
+            out[MISMATCH, i] - out[NOISE_BG, i] - np.sqrt(2.0 / np.pi * (sb2 + k * level)) * area / level, 0.0
+        )
+        fill[i] = f = _nan_to_num((area + area_e - mis) / (area + area_e + mis))
+        # pixel noise through the centred monomials (c0..c8 the window's sums, m the variance per axis)
+        c0, c2, c4, c22 = out[SUMS, i], out[SUMS + 1, i], out[SUMS + 2, i], out[SUMS + 3, i]
+        c6, c42, c8 = out[SUMS + 4, i], out[SUMS + 5, i], out[SUMS + 6, i]
+        m = 0.5 * tr
+        bg3 = 2 * (c6 - 6 * m * c4 + 9 * m * m * c2) + 6 * (c42 - 2 * m * c22 + m * m * c2)
+        asym_noise = np.sqrt(sb2 * bg3 + k * S * (4.0 * m) ** 3 / 8.0) / S / (2.0 * tr)
+        m2, kap = out[VAR_MAJOR, i], out[KURT_MODEL, i]
+        al, be = 2 * kap * m2, kap * m2 * m2
+        bg4 = c8 - 2 * al * c6 + (al * al + 2 * be) * c4 - 2 * al * be * c2 + be * be * c0
+        q = a * a / 4.0
+        shot4 = 14 * q**4 - 2 * al * 5 * q**3 + (al * al + 2 * be) * 2 * q * q - 2 * al * be * q + be * be
+        kurt_noise = np.sqrt(sb2 * bg4 + k * S * _maximum(shot4, 0.0)) / (S * m2 * m2)
+        # a disk's flux over its plateau is its ellipse's area; a ring, a glyph or a hollow blob has
+        # a dim centre, so its "area" is many times the moments' (the blur estimate stops at 0)
+        ratio_max = ratio_flat if b >= min_b else ratio_small
+        shape_ok = (
+            b * max_aspect >= a
+            and f >= min_fill
+            and out[FLAT_TOP, i] >= min_flat
+            and area <= ratio_max * np.pi * a * b
+            and np.sqrt(out[M3SQ, i]) / (2.0 * tr) <= sig0 * asym_noise + floor0
+            and abs(out[KURT, i] - kap) <= sig1 * kurt_noise + floor1
+            and np.isfinite(out[0, i])
+            and np.isfinite(out[1, i])
+        )
+        reason[i] = levels[i] if levels[i] >= 0 else (-1 if shape_ok else codes[4])
+    return reason, sigma, fill
+
+
+@lru_cache(maxsize=1)  # once per process
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the kernels for 8-bit images, the image and the masked
+    buffer paths, so that no frame pays for it. Cheap after the first call in a process."""
+    img = np.zeros((32, 32), dtype=np.uint8)
+    img[13:19, 13:19] = 200
+    c, half = np.array([16, 16], dtype=np.intp), np.array([6, 6], dtype=np.intp)
+    placed = np.ones(2, dtype=np.bool_)
+    buf = img[10:23, 10:23].astype(np.float32).ravel()
+    seg = np.full(2, 10.0)
+    out, n_sat, edge = measure_windows_kernel(
+        img, c, c, half, placed, seg, 255.0, buf, np.array([-1, 0], dtype=np.intp)
+    )
+    limits = np.array([6, 5000, 4, 0.6, 2, 2.5, 0.4, 3, 4, 0.015, 0.05, 1.3, 2.5])
+    assess_kernel(out, n_sat, edge, placed, 2 * seg, limits, np.arange(5, dtype=np.intp))
+    contour_kernel.warm_up()
+    noise_kernel.warm_up()
+    centre, flags = np.array([[1.0, 1.0], [9.0, 1.0]]), np.ones(2, dtype=np.bool_)
+    box = np.array([[0, 0, 2, 2], [8, 0, 10, 2]], dtype=np.intp)
+    crowd_kernel.neighbours_kernel(
+        box,
+        centre,
+        np.ones((2, 3)),
+        np.ones((2, 2), dtype=np.intp),
+        np.ones(2, dtype=np.intp),
+        np.ones(2),
+        flags,
+        flags,
+        flags,
+        2.0,
+        3.2,
+        0.4,
+        16,
+        16,
+    )
+    own = np.array([[0.0, 0.0, 0.1, 0.0, 0.1], [np.nan] * 5])
+    crowd_kernel.mask_windows_kernel(img, c, c, half, np.array([0], dtype=np.intp), own, seg)

@@ -1,0 +1,1 @@
+"""Calibrations: the camera (bundle), the rig, the hand-eye."""

@@ -1,0 +1,1 @@
+"""Frames, rotations, the camera model and its OpenCV equivalent, similarity transforms."""

@@ -1,0 +1,1 @@
+"""The robot model's identification from measured flange poses."""

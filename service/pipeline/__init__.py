@@ -1,0 +1,1 @@
+"""From a frame to a measured pose: detection, decoding, identification, resection, ROI tracking."""

@@ -1,0 +1,428 @@
+"""From a grey IR frame (or given observations) to a :class:`PoseResult`: synchronous, no threads, no I/O.
+
+Full frame (the paper's two steps): detect all blobs, decode the coded ones,
+resect from the coded targets, predict every uncoded target from that pose and
+match it to the nearest blob, then adjust over all targets with gross errors
+rejected. ROI mode: predict every target from the last poses, measure only small
+windows around the predictions, adjust from the predicted pose; fall back to the
+full frame when that fails. With a velocity the constant-velocity prediction is
+usually good to a fraction of a pixel: every target is measured at once in tight
+windows, and only when a disk lies off its window's centre by more than they allow
+does the frame take two stages (see :meth:`FrameMeasurer._measure_roi`). Stage
+timings are recorded for the benchmark and the service's latency report.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from itertools import repeat
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.core._kernels import detect_kernel, geometry_kernels, resection_kernel, roi_kernel
+from service.core.geometry.camera_model import BrownFraser
+from service.core.pose.resection import ResectionResult, resect
+from service.core.pose.tracking import PoseSample, predict_pose
+from service.core.results import Failure, PoseResult, Reason, SolveError, TargetObservation
+from service.core.targets.codes import POSECELL12, CodeFamily
+from service.core.targets.decode import read_codes
+from service.core.targets.decode import warm_up as decode_warm_up
+from service.core.targets.detect import Blobs, DetectSettings, detect_blobs, measure_windows
+from service.core.targets.field import Field
+from service.core.targets.identify import eccentricity_px, match_coded, match_predicted, project_field
+
+Array = NDArray[np.float64]
+
+
+def _observations(
+    ids: Sequence[str], uv: Array, residuals: Array, coded: list[bool], used: list[bool]
+) -> tuple[TargetObservation, ...]:
+    """TargetObservations of the rows of ``uv`` and ``residuals`` (N, 2) px. A frozen dataclass's
+    ``__init__`` sets each field through ``object.__setattr__``: for the ~230 targets of a frame
+    that cost a fifth of an ROI frame's budget, so the instances are made empty (by ``map``, without
+    a Python call each) and their fields written to their ``__dict__``; the (u, v) pairs come from
+    zipping the columns as Python floats."""
+    out = list(map(object.__new__, repeat(TargetObservation, len(ids))))
+    pairs = zip(uv[:, 0].tolist(), uv[:, 1].tolist(), strict=True)
+    res = zip(residuals[:, 0].tolist(), residuals[:, 1].tolist(), strict=True)
+    for t, tid, q, r, c, u in zip(out, ids, pairs, res, coded, used, strict=True):
+        d = t.__dict__
+        d["id"], d["uv"], d["residual_px"], d["coded"], d["used"] = tid, q, r, c, u
+    return tuple(out)
+
+
+def pose_result_from_resection(
+    result: ResectionResult, field: Field, ids: Sequence[str], uv: Array, rows: NDArray[np.int64] | None = None
+) -> PoseResult:
+    """Attach target ids, codes and residuals to a resection result (``rows``: the ids' field rows, if known)."""
+    if rows is None:
+        rows = field.indices_of(list(ids))
+    # Python scalars first: indexing numpy arrays element by element costs more than the resection
+    targets = _observations(
+        ids,
+        np.asarray(uv, dtype=np.float64).reshape(-1, 2),
+        result.residuals_px,
+        (field.codes[rows] >= 0).tolist(),
+        result.inliers.tolist(),
+    )
+    return PoseResult(
+        T_field_camera=result.T_field_camera,
+        sigma_position_mm=result.sigma_position_mm,
+        sigma_rotation_deg=result.sigma_rotation_deg,
+        rms_px=result.rms_px,
+        sigma0_px=result.sigma0_px,
+        targets=targets,
+        n_iter=result.n_iter,
+    )
+
+
+def resect_observations(
+    camera: BrownFraser,
+    field: Field,
+    ids: Sequence[str],
+    uv: Array,
+    *,
+    sigma_px: float | None = None,
+    T_field_camera_init: Array | None = None,
+) -> PoseResult:
+    """Resection from identified image points ``uv`` (N, 2) px of field targets ``ids``.
+
+    Raises :class:`~service.core.results.SolveError` when no trustworthy pose exists.
+    """
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    p_field = field.xyz[field.indices_of(list(ids))]
+    result = resect(camera, p_field, uv, sigma_px=sigma_px, T_field_camera_init=T_field_camera_init)
+    return pose_result_from_resection(result, field, ids, uv)
+
+
+@dataclass(frozen=True)
+class MeasureSettings:
+    """Processing options of one camera (all have defaults that suit the reference scene)."""
+
+    detect: DetectSettings = field(default_factory=DetectSettings)
+    match_tolerance_px: float = 4.0
+    min_coded: int = 4
+    min_targets: int = 6
+    sigma_px: float | None = None
+    correct_eccentricity: bool = True
+    roi: bool = True
+    roi_min_fraction: float = 0.7  # of predicted targets found, else full frame
+    roi_max_sigma0_px: float = 0.3
+    roi_refine: bool = True  # tight windows about a precise prediction: as precise as the full frame
+    roi_prediction_error_px: float = 4.0  # how far a target may move from its constant-velocity prediction
+    max_sigma0_px: float = 0.5
+    code_family: CodeFamily = POSECELL12  # the coded targets' ring code (codes.AICON14 for AICON plates)
+    # nearest and farthest camera-to-target distance, mm: if given, blobs smaller or larger than any
+    # target of the field can appear there are not measured (:func:`detect_settings_for_range`)
+    range_mm: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One frame's result, how it was obtained and what it cost."""
+
+    result: PoseResult | Failure
+    mode: str  # "full" or "roi"
+    timings_ms: dict[str, float]
+    n_blobs: int = 0
+    rejections: dict[str, int] | None = None
+
+
+#: ROI windows about precise predictions allow this fraction of ``roi_prediction_error_px``
+TIGHT_SLACK = 0.25
+#: A target's image at the far end of the range is at least this share of its head-on disk (seen at up
+#: to 75 deg, thresholded); at the near end at most this many times it (blur and the threshold's growth)
+MIN_AREA_SHARE, MAX_AREA_FACTOR = 0.25, 1.5
+
+
+def detect_settings_for_range(
+    detect: DetectSettings, field: Field, camera: BrownFraser, range_mm: tuple[float, float]
+) -> DetectSettings:
+    """``detect`` with its area limits narrowed to the targets ``field`` can show at ``range_mm``
+    (nearest, farthest; mm) through ``camera``: the smallest disk at the far end seen obliquely,
+    the largest at the near end plus 2 px of blur (unknown diameters: 10 mm coded, 6 mm uncoded).
+    Narrower limits reject stickers, labels and specks before they are measured, and keep the
+    search for ring pieces short."""
+    near, far = (float(v) for v in range_mm)
+    if not 0 < near <= far:
+        raise ValueError(f"range_mm must be (nearest, farthest) with 0 < nearest <= farthest, got {range_mm}")
+    d = np.where(np.isfinite(field.diameters_mm), field.diameters_mm, np.where(field.is_coded, 10.0, 6.0))
+    px = camera.c_mm / camera.mean_pixel_size_mm  # image radius px per mm of disk radius at 1 mm range
+    r_small, r_big = 0.5 * float(d.min()) * px / far, 0.5 * float(d.max()) * px / near
+    min_area = max(3, int(MIN_AREA_SHARE * np.pi * r_small**2))
+    max_area = int(np.ceil(MAX_AREA_FACTOR * np.pi * (r_big + 2.0) ** 2))
+    return replace(
+        detect,
+        min_area_px=max(detect.min_area_px, min_area),
+        max_area_px=max(min(detect.max_area_px, max_area), min_area + 1),
+    )
+
+
+def _nominal(camera: BrownFraser) -> bool:
+    """True for a camera with no calibration: no sigma (``posecell calibrate camera`` writes one)
+    and no correction terms at all (a camera.json written from the data sheet)."""
+    return camera.sigma is None and not np.any(camera.params()[1:])
+
+
+def _with_calibration_hint(e: SolveError, camera: BrownFraser) -> SolveError:
+    """``e`` with a sentence saying the camera is not calibrated, when that is the likely cause: the
+    targets disagree with every pose (sigma0, gross errors), as an uncorrected lens's distortion makes
+    them do (a 24 mm lens: 0.7 px against the 0.5 px limit)."""
+    if not _nominal(camera) or not ({"sigma0_px", "rejected"} & set(e.details)):
+        return e
+    return SolveError(
+        e.reason,
+        f"{e.message.rstrip('.')}. The camera is not calibrated (its camera.json has no "
+        "distortion terms and no sigma), and an uncorrected lens alone does this: run "
+        "`posecell calibrate camera` on images of the field and measure with the camera.json it "
+        "writes.",
+        e.details,
+    )
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.t = time.perf_counter()
+        self.ms: dict[str, float] = {}
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.ms[name] = self.ms.get(name, 0.0) + (now - self.t) * 1e3
+        self.t = now
+
+
+class FrameMeasurer:
+    """Measures frames of one camera against one field, keeping the pose history for ROI tracking."""
+
+    def __init__(self, camera: BrownFraser, field: Field, settings: MeasureSettings | None = None) -> None:
+        self.camera = camera
+        self.field = field
+        self.settings = settings or MeasureSettings()
+        if self.settings.range_mm is not None:
+            self.settings = replace(
+                self.settings,
+                detect=detect_settings_for_range(self.settings.detect, field, camera, self.settings.range_mm),
+            )
+        self._roi_detect = self.settings.detect  # with the last full frame's noise, for the ROI windows' levels
+        self._history: deque[PoseSample] = deque(maxlen=2)
+        self._mask: NDArray[np.uint8] | None = None  # detect_blobs' scratch, reused frame after frame
+        self._ids = np.array(field.ids, dtype=object)  # ids by field row, for fancy indexing
+        # the compiled kernels, once per process (numba's disk cache makes it a load), so that no
+        # frame pays for their compilation
+        detect_kernel.warm_up()
+        geometry_kernels.warm_up()
+        resection_kernel.warm_up()
+        roi_kernel.warm_up()
+        decode_warm_up()
+        self._radius_mm = (
+            np.where(np.isfinite(field.diameters_mm), field.diameters_mm, np.where(field.is_coded, 10.0, 6.0)) / 2.0
+        )
+        # per field row, for the compiled window sizes
+        self._radius_c = self._radius_mm * camera.c_mm
+        self._coded = np.ascontiguousarray(field.codes >= 0)
+
+    def reset(self) -> None:
+        """Forget the pose history: the next frame is measured in full."""
+        self._history.clear()
+
+    # -- public --------------------------------------------------------------
+
+    def measure(self, image: NDArray[np.generic], t_s: float | None = None) -> Outcome:
+        """Measure one frame taken at ``t_s`` (s; None: no tracking across frames)."""
+        s = self.settings
+        if s.roi and t_s is not None:
+            T_pred = predict_pose(list(self._history), t_s)
+            if T_pred is not None:
+                # without a velocity yet, the target may be anywhere the last motion could take it
+                slack = 1.0 if len(self._history) >= 2 else 2.5
+                out = self._measure_roi(image, T_pred, slack)
+                if out is not None:
+                    self._remember(out.result, t_s)
+                    return out
+        out = self._measure_full(image)
+        if t_s is not None:
+            self._remember(out.result, t_s)
+        return out
+
+    # -- internals -----------------------------------------------------------
+
+    def _remember(self, result: PoseResult | Failure, t_s: float) -> None:
+        if isinstance(result, PoseResult):
+            self._history.append(PoseSample(np.asarray(result.T_field_camera), t_s))
+        else:
+            self._history.clear()
+
+    def _finish(self, rows: NDArray[np.int64], uv: Array, T_init: Array | None, clock: _Clock) -> PoseResult:
+        """Adjust over matched targets (with eccentricity correction) and build the result."""
+        s = self.settings
+        p = self.field.xyz[rows]
+        if s.correct_eccentricity and T_init is not None:
+            # the offsets are hundredths of a pixel and vary slowly with the pose, so the
+            # approximate pose is good enough and saves a second adjustment
+            uv = uv - eccentricity_px(self.camera, p, self._radius_mm[rows], T_init, uv)
+        res = resect(self.camera, p, uv, sigma_px=s.sigma_px, T_field_camera_init=T_init)
+        clock.lap("resect")
+        if res.sigma0_px > s.max_sigma0_px:
+            raise SolveError(
+                Reason.no_convergence,
+                f"the targets disagree with the pose by {res.sigma0_px:.2f} px (sigma0), "
+                f"more than {s.max_sigma0_px} px: check the camera calibration and the field",
+                {"sigma0_px": res.sigma0_px},
+            )
+        result = pose_result_from_resection(res, self.field, self._ids[rows].tolist(), uv, rows)
+        clock.lap("result")
+        return result
+
+    def _measure_full(self, image: NDArray[np.generic]) -> Outcome:
+        s = self.settings
+        clock = _Clock()
+        shape = np.shape(image)
+        if self._mask is None or self._mask.shape != shape:
+            self._mask = np.empty(shape, dtype=np.uint8) if len(shape) == 2 else None
+        try:
+            blobs, rejections = detect_blobs(image, s.detect, mask_buffer=self._mask)
+        except SolveError as e:
+            return Outcome(Failure.from_error(e), "full", clock.ms)
+        clock.lap("detect")
+        counts = rejections.counts
+        # rounded: the detector caches its constants per settings
+        self._roi_detect = replace(s.detect, noise_dn=round(rejections.work.noise_dn, 1))
+        try:
+            result = self._identify_and_resect(image, blobs, clock)
+        except SolveError as e:
+            return Outcome(
+                Failure.from_error(_with_calibration_hint(e, self.camera)), "full", clock.ms, len(blobs), counts
+            )
+        return Outcome(result, "full", clock.ms, len(blobs), counts)
+
+    def _identify_and_resect(self, image: NDArray[np.generic], blobs: Blobs, clock: _Clock) -> PoseResult:
+        s = self.settings
+        if len(blobs) < s.min_coded:
+            raise SolveError(
+                Reason.too_few_targets,
+                f"{len(blobs)} targets found in the image, at least {s.min_coded} coded ones are needed",
+            )
+        # only a blob the detector found ring pieces around can be coded: read just those
+        ringed = np.flatnonzero(blobs.has_ring)
+        readings = read_codes(image, blobs.ellipse[ringed], blobs.background_dn[ringed], family=s.code_family)
+        codes_read = np.full(len(blobs), -1, dtype=np.int64)
+        codes_read[ringed] = [-1 if r is None else r.code for r in readings]
+        coded = match_coded(self.field, codes_read)
+        clock.lap("decode")
+        if len(coded.rows) < s.min_coded:
+            raise SolveError(
+                Reason.too_few_targets,
+                f"{len(coded.rows)} coded targets of the field identified, at least {s.min_coded} are needed",
+                {"n_blobs": len(blobs), "n_coded": len(coded.rows)},
+            )
+        res = resect(self.camera, self.field.xyz[coded.rows], blobs.uv[coded.blobs], sigma_px=s.sigma_px)
+        coded_rows = coded.rows[res.inliers]
+        coded_blobs = coded.blobs[res.inliers]
+        # the paper's second step: every other target, predicted from the coded pose
+        rows, uv_pred = project_field(self.camera, self.field, res.T_field_camera, margin_px=-2.0)
+        todo = np.ones(len(self.field), dtype=bool)
+        todo[coded_rows] = False
+        todo = todo[rows]
+        taken = np.zeros(len(blobs), bool)
+        taken[coded_blobs] = True
+        m = match_predicted(uv_pred[todo], rows[todo], blobs.uv, s.match_tolerance_px, taken)
+        clock.lap("identify")
+        all_rows = np.concatenate([coded_rows, m.rows])
+        all_blobs = np.concatenate([coded_blobs, m.blobs])
+        if len(all_rows) < s.min_targets:
+            raise SolveError(Reason.too_few_targets, f"only {len(all_rows)} targets identified")
+        return self._finish(all_rows, blobs.uv[all_blobs], res.T_field_camera, clock)
+
+    def _measure_roi(self, image: NDArray[np.generic], T_pred: Array, slack: float = 1.0) -> Outcome | None:
+        s = self.settings
+        clock = _Clock()
+        rows, uv_pred, depth = project_field(self.camera, self.field, T_pred, margin_px=4.0, with_depth=True)
+        if len(rows) < s.min_targets:
+            return None
+        measured = None
+        if s.roi_refine and slack <= 1.0:
+            # with a velocity the prediction is usually far better than the allowance: measure every
+            # target in tight windows right away, and keep that only if each disk lies as close to
+            # its window's centre as the tight windows are made for (else: two stages, below)
+            measured = self._measure_targets(image, rows, uv_pred, depth, TIGHT_SLACK, check_centred=True)
+        if measured is None and s.roi_refine:
+            # stage 1: locate the uncoded targets in generous windows and re-solve the pose, so
+            # that stage 2 can measure every target (coded ones too, whose windows must stay
+            # inside the ring's gap) in tight windows around precise predictions
+            uncoded = self.field.codes[rows] < 0
+            half = self._window_half_size(rows[uncoded], depth[uncoded], slack)
+            try:
+                blobs, found = measure_windows(image, uv_pred[uncoded], half, self._roi_detect)
+                ok = found >= 0
+                if ok.sum() < max(s.min_targets, s.roi_min_fraction * uncoded.sum()):
+                    return None
+                T_pred = resect(
+                    self.camera,
+                    self.field.xyz[rows[uncoded][ok]],
+                    blobs.uv[found[ok]],
+                    sigma_px=s.sigma_px,
+                    T_field_camera_init=T_pred,
+                ).T_field_camera
+            except (ValueError, SolveError):
+                return None
+            rows, uv_pred, depth = project_field(self.camera, self.field, T_pred, margin_px=4.0, with_depth=True)
+            slack = TIGHT_SLACK
+        if measured is None:
+            measured = self._measure_targets(image, rows, uv_pred, depth, slack)
+        clock.lap("windows")
+        if measured is None:
+            return None
+        rows_ok, uv_ok = measured
+        try:
+            result = self._finish(rows_ok, uv_ok, T_pred, clock)
+        except SolveError:
+            return None
+        if result.sigma0_px > s.roi_max_sigma0_px:
+            return None
+        return Outcome(result, "roi", clock.ms, len(rows_ok))
+
+    def _measure_targets(
+        self,
+        image: NDArray[np.generic],
+        rows: NDArray[np.int64],
+        uv_pred: Array,
+        depth: Array,
+        slack: float,
+        check_centred: bool = False,
+    ) -> tuple[NDArray[np.int64], Array] | None:
+        """Field rows and measured pixels (N, 2) of the targets found in windows about their
+        predictions; None when too few are found or, with ``check_centred``, when a disk lies
+        further from its window's centre than ``slack`` times the prediction allowance."""
+        s = self.settings
+        half = self._window_half_size(rows, depth, slack)
+        try:
+            blobs, found = measure_windows(image, uv_pred, half, self._roi_detect)
+        except (ValueError, SolveError):
+            return None
+        # compiled: as array expressions the gathering and the check were 2 % of an ROI frame
+        rows_ok, uv, worst_px2 = roi_kernel.gather_found_kernel(found, blobs.uv, rows, uv_pred)
+        if len(rows_ok) < max(s.min_targets, s.roi_min_fraction * len(rows)):
+            return None
+        if check_centred and worst_px2 > (slack * s.roi_prediction_error_px) ** 2:
+            return None
+        return rows_ok, uv
+
+    def _window_half_size(self, rows: NDArray[np.int64], depth: Array, slack: float = 1.0) -> NDArray[np.int64]:
+        """Half window (px) per target at ``depth`` (mm): the disk's image radius, the blur, and the prediction error.
+
+        A coded target's window stays inside its dark gap (the ring starts at 2 R; the
+        square window's corners and the blur need the margin).
+        """
+        # compiled: as array expressions they were 2 % of an ROI frame
+        return roi_kernel.window_half_size_kernel(
+            self._radius_c,
+            self._coded,
+            rows,
+            depth,
+            float(self.camera.mean_pixel_size_mm),
+            slack * self.settings.roi_prediction_error_px,
+        )

@@ -1,0 +1,1 @@
+"""The running cell: acquisition, pairing with the robot, processing, sessions, the worker."""

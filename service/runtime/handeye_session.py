@@ -1,0 +1,268 @@
+"""The guided hand-eye calibration in the service: plan poses, record samples, solve, store.
+
+1. ``start``: from the camera's current measured pose and the robot's pose at that
+   frame, propose ``n`` flange poses around the field (``core.handeye_plan``).
+2. The robot is moved to each (by the integrator's robot program; in the
+   simulated cell the service can move it), and ``capture`` records a sample:
+   the next frame's measured ``T_field_camera`` with its σ, and the robot's
+   reported ``T_base_flange`` at that exposure — refused while the robot moves.
+3. ``solve``: Tsai–Lenz, then the joint refinement of X and Z over all samples
+   with the camera σ from the resections (``core.handeye.calibrate_handeye``),
+   then the refinement on the image observations with the robot's pose errors
+   as unknowns (``core.handeye_images``); residuals per sample and warnings come back; ``apply`` stores the result
+   versioned and atomically, and the worker uses it from the next frame.
+
+Samples can be exported in the format of ``posecell calibrate handeye --samples``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from service.core.calib.handeye import calibrate_handeye, motion_quality
+from service.core.calib.handeye_images import ImageSample, refine_handeye_on_images
+from service.core.calib.handeye_plan import flange_poses_for_views, propose_views
+from service.core.geometry.camera_model import BrownFraser
+from service.core.geometry.frames import orientation_report, ur_pose_from_T
+from service.core.results import Reason, SolveError
+from service.core.targets.field import Field
+
+STILL_WINDOW_S = 0.3
+STILL_POSITION_MM = 0.05
+STILL_ANGLE_DEG = 0.01
+
+
+class SessionError(Exception):
+    """A step of the workflow that cannot be done now; ``reason`` is a machine-readable code."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason, self.message = reason, message
+
+    def __reduce__(self) -> tuple[Any, ...]:  # raised in the solver process, re-raised in the service's
+        return (type(self), (self.reason, self.message))
+
+
+@dataclass
+class Sample:
+    T_base_flange: np.ndarray
+    T_field_camera: np.ndarray
+    sigma_position_mm: list[float]
+    sigma_rotation_deg: list[float]
+    rms_px: float
+    n_targets: int
+    t_wall: str
+    camera: str
+    ids: list[str] = field(default_factory=list)  # the targets used in the frame's adjustment
+    uv: np.ndarray | None = None  # (N, 2) px, measured
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "points": [{"id": i, "uv": [float(u), float(v)]} for i, (u, v) in zip(self.ids, self.uv, strict=True)]
+            if self.uv is not None
+            else [],
+            "T_base_flange": self.T_base_flange.tolist(),
+            "T_field_camera": self.T_field_camera.tolist(),
+            "sigma_position_mm": self.sigma_position_mm,
+            "sigma_rotation_deg": self.sigma_rotation_deg,
+            "rms_px": self.rms_px,
+            "n_targets": self.n_targets,
+            "t_wall": self.t_wall,
+            "camera": self.camera,
+        }
+
+
+@dataclass
+class HandEyeSession:
+    camera: str
+    proposals: list[np.ndarray]  # T_base_flange (4, 4) mm
+    X_guess: np.ndarray
+    samples: list[Sample] = field(default_factory=list)
+    result: dict[str, Any] | None = None
+    applied_version: int | None = None
+    created_wall: str = field(default_factory=lambda: time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    # --- 1. plan ------------------------------------------------------------------------------
+
+    @classmethod
+    def start(cls, worker: Any, camera: str, n_poses: int) -> HandEyeSession:
+        cal = worker.calibration
+        if cal.camera is None or cal.field is None:
+            raise SessionError(Reason.not_calibrated, "a camera and a field calibration are needed first")
+        latest = worker.latest.get(camera)
+        if not latest or not latest.get("ok") or latest.get("T_base_flange") is None:
+            raise SessionError(
+                Reason.too_few_targets,
+                "the camera must see the field and the robot must be connected: no measured, paired pose yet",
+            )
+        X_guess = cal.handeye.T_flange_camera if cal.handeye is not None else np.eye(4)
+        T_fc = np.asarray(latest["T_field_camera"])
+        try:
+            views = propose_views(cal.camera, cal.field, T_fc, n=n_poses)
+        except SolveError as e:
+            raise SessionError(e.reason, e.message) from None
+        poses = flange_poses_for_views(views, np.asarray(latest["T_base_flange"]), T_fc, X_guess)
+        return cls(camera=camera, proposals=poses, X_guess=X_guess)
+
+    # --- 2. record ----------------------------------------------------------------------------
+
+    def capture(self, worker: Any, timeout_s: float = 5.0) -> Sample:
+        robot = worker.robot
+        if robot is None or not robot.connected:
+            raise SessionError(Reason.robot_disconnected, "the robot is not connected")
+        now = time.monotonic_ns()
+        recent = robot.samples_between(now - int(STILL_WINDOW_S * 1e9), now)
+        if len(recent) >= 2:
+            p = np.array([s.T_base_flange[:3, 3] for s in recent])
+            spread_mm = float(np.max(np.linalg.norm(p - p[-1], axis=1)))
+            dR = [recent[-1].T_base_flange[:3, :3].T @ s.T_base_flange[:3, :3] for s in recent]
+            spread_deg = max(float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))) for R in dR)
+            if spread_mm > STILL_POSITION_MM or spread_deg > STILL_ANGLE_DEG:
+                raise SessionError(
+                    Reason.robot_moving,
+                    f"the robot moved {spread_mm:.2f} mm in the last {STILL_WINDOW_S} s; record samples at rest",
+                )
+        result = worker.request_measurement(self.camera).result(timeout=timeout_s).result
+        if not result.get("ok"):
+            raise SessionError(
+                Reason(result.get("reason", Reason.no_frame)), result.get("message", "the frame was not measured")
+            )
+        if result.get("T_base_flange") is None:
+            raise SessionError(Reason.robot_disconnected, result.get("flange_message", "no robot pose at the frame"))
+        sample = Sample(
+            T_base_flange=np.asarray(result["T_base_flange"]),
+            T_field_camera=np.asarray(result["T_field_camera"]),
+            sigma_position_mm=list(result["sigma_position_mm"]),
+            sigma_rotation_deg=list(result["sigma_rotation_deg"]),
+            rms_px=float(result["rms_px"]),
+            n_targets=int(result["n_coded"]) + int(result["n_uncoded"]),
+            t_wall=result["t_wall"],
+            camera=self.camera,
+            ids=[t["id"] for t in result.get("targets", []) if not t.get("rejected")],
+            uv=np.array([t["uv"] for t in result.get("targets", []) if not t.get("rejected")]).reshape(-1, 2),
+        )
+        with self.lock:
+            self.samples.append(sample)
+            self.result = None
+        return sample
+
+    def remove(self, index: int) -> None:
+        with self.lock:
+            if not 0 <= index < len(self.samples):
+                raise SessionError(Reason.not_found, f"no sample #{index}; there are {len(self.samples)}")
+            del self.samples[index]
+            self.result = None
+
+    # --- 3. solve and apply -------------------------------------------------------------------
+
+    def solve(
+        self,
+        camera: BrownFraser | None = None,
+        target_field: Field | None = None,
+        run: Callable[..., dict[str, Any]] | None = None,
+    ) -> dict[str, Any]:
+        """:func:`solve_samples` over the recorded samples, by ``run(fn, *args)`` if given (the
+        service's solver process) and stored as the session's result."""
+        with self.lock:
+            samples = list(self.samples)
+        out = (run or _call)(solve_samples, samples, camera, target_field)
+        with self.lock:
+            self.result = out
+        return out
+
+    def handeye_payload(self) -> dict[str, Any]:
+        if self.result is None:
+            raise SessionError(Reason.not_solved, "solve the session before applying it")
+        return {**self.result, "note": f"hand-eye session of {self.created_wall}, {len(self.samples)} samples"}
+
+    # --- reports ------------------------------------------------------------------------------
+
+    def summary(self) -> dict[str, Any]:
+        with self.lock:
+            samples = list(self.samples)
+            result = self.result
+        quality = motion_quality(np.array([s.T_base_flange for s in samples])) if len(samples) >= 3 else None
+        return {
+            "camera": self.camera,
+            "created": self.created_wall,
+            "proposals": [
+                {"T_base_flange": T.tolist(), "ur_pose_m_rotvec": ur_pose_from_T(T).tolist(), **orientation_report(T)}
+                for T in self.proposals
+            ],
+            "n_samples": len(samples),
+            "samples": [s.to_dict() for s in samples],
+            "motion": quality,
+            "result": result,
+            "applied_version": self.applied_version,
+            "X_guess": self.X_guess.tolist(),
+        }
+
+    def export(self) -> dict[str, Any]:
+        """The samples in the format of ``posecell calibrate handeye --samples``."""
+        with self.lock:
+            return {"samples": [s.to_dict() for s in self.samples]}
+
+
+def _call(fn: Callable[..., dict[str, Any]], *args: Any) -> dict[str, Any]:
+    return fn(*args)
+
+
+def solve_samples(
+    samples: list[Sample], camera: BrownFraser | None = None, target_field: Field | None = None
+) -> dict[str, Any]:
+    """Tsai–Lenz + pose-level refinement; then, given the camera and field, the refinement on the
+    image observations with the robot's errors as unknowns (the answer when it converges)."""
+    if len(samples) < 3:
+        raise SessionError(
+            Reason.poor_motion, f"{len(samples)} samples recorded; at least 3 are needed, 8 or more advised"
+        )
+    P = np.array([s.T_base_flange for s in samples])
+    C = np.array([s.T_field_camera for s in samples])
+    sig_pos = float(np.median([np.mean(s.sigma_position_mm) for s in samples]))
+    sig_rot = float(np.median([np.mean(s.sigma_rotation_deg) for s in samples]))
+    try:
+        res = calibrate_handeye(
+            P, C, sigma_camera_position_mm=max(sig_pos, 1e-3), sigma_camera_rotation_deg=max(sig_rot, 1e-4)
+        )
+    except SolveError as e:
+        raise SessionError(e.reason, e.message) from None
+    out = {"ok": True, **res.to_dict(), "n_samples": len(samples), "method": "pose-level"}
+    if camera is not None and target_field is not None and all(s.uv is not None and len(s.ids) >= 4 for s in samples):
+        img = [ImageSample(s.T_base_flange, target_field.xyz[target_field.indices_of(s.ids)], s.uv) for s in samples]
+        try:
+            ref = refine_handeye_on_images(
+                camera,
+                img,
+                res.T_flange_camera,
+                res.T_base_field,
+                sigma_px=max(0.01, float(np.median([s.rms_px for s in samples]))),
+            )
+        except SolveError as e:
+            out["warnings"] = [*out["warnings"], f"image-level refinement failed: {e.message}"]
+        else:
+            if ref.converged:
+                out.update(
+                    method="image-level",
+                    T_flange_camera=ref.T_flange_camera.tolist(),
+                    T_base_field=ref.T_base_field.tolist(),
+                    sigma_flange_camera_position_mm=ref.sigma_flange_camera_position_mm.tolist(),
+                    sigma_flange_camera_rotation_deg=ref.sigma_flange_camera_rotation_deg.tolist(),
+                    sigma_base_field_position_mm=ref.sigma_base_field_position_mm.tolist(),
+                    sigma_base_field_rotation_deg=ref.sigma_base_field_rotation_deg.tolist(),
+                    robot_error_position_mm=ref.robot_error_position_mm.tolist(),
+                    robot_error_rotation_deg=ref.robot_error_rotation_deg.tolist(),
+                    rms_px_per_sample=ref.rms_px.tolist(),
+                    sigma0_images=ref.sigma0,
+                    pose_level={
+                        "T_flange_camera": res.T_flange_camera.tolist(),
+                        "T_base_field": res.T_base_field.tolist(),
+                    },
+                )
+    return out

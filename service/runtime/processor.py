@@ -1,0 +1,196 @@
+"""One camera's processing: frame + robot history → the result of DESIGN section 4, as a dict.
+
+The pose comes from ``service.pipeline.measure.FrameMeasurer`` (ROI tracking with a
+full-frame fall-back). Then the flange:
+
+    T_base_flange_measured = T_base_field @ T_field_camera @ inv(T_flange_camera)
+
+with the hand-eye ``X = T_flange_camera`` and the robot–world ``Z =
+T_base_field``, compared with the controller's ``T_base_flange`` at the
+exposure instant. The deviation is ``measured - reported`` expressed in the base
+frame (mm) plus the rotation angle between them (deg). A robot that is absent,
+disconnected or not paired, or a missing hand-eye, leaves the pose valid and
+says why the flange part is missing (``flange_reason``).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from drivers.base import Frame, RobotDriver
+from service.core.geometry.frames import inv_T, pose_difference
+from service.core.pose.timesync import TimeOffsetFit, estimate_time_offset_s
+from service.core.results import Failure, PoseResult, Reason
+from service.core.targets.codes import FAMILIES
+from service.core.targets.detect import DetectSettings
+from service.pipeline.measure import FrameMeasurer, MeasureSettings
+from service.runtime.acquisition import DeviceState
+from service.runtime.calibration_state import CalibrationState
+from service.runtime.pairing import FramePairer
+from service.settings import ProcessingConfig, Settings
+
+
+def measure_settings(p: ProcessingConfig) -> MeasureSettings:
+    detect = DetectSettings()
+    if p.min_contrast_dn is not None:
+        detect = replace(detect, min_contrast_dn=p.min_contrast_dn)
+    if p.max_area_px is not None:
+        detect = replace(detect, max_area_px=p.max_area_px)
+    return MeasureSettings(
+        detect=detect,
+        min_coded=p.min_coded,
+        min_targets=p.min_targets,
+        sigma_px=p.sigma_px,
+        max_sigma0_px=p.max_sigma0_px,
+        correct_eccentricity=p.correct_eccentricity,
+        roi=p.roi_tracking,
+        code_family=FAMILIES[p.code_family],
+    )
+
+
+def _wall(t_ns_since_epoch: int) -> str:
+    secs, ns = divmod(t_ns_since_epoch, 1_000_000_000)
+    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(secs)) + f".{ns // 1_000_000:03d}Z"
+
+
+def _round_T(T: np.ndarray) -> list[list[float]]:
+    return [[round(float(v), 9) for v in row] for row in T]
+
+
+class CameraProcessor:
+    """Measures the frames of one camera (called from the worker's processing thread only)."""
+
+    def __init__(self, name: str, settings: Settings, calibration: CalibrationState) -> None:
+        self.name = name
+        self.settings = settings
+        self.calibration = calibration
+        cam_cfg = next(c for c in settings.cameras if c.name == name)
+        self.pairer = FramePairer(cam_cfg.transport_latency_s, settings.robot.transport_latency_s)
+        self.failed_reason = ""
+        self._measurer: FrameMeasurer | None = None
+        self._generation = -1
+        self._motion: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=600)
+        self._offset: TimeOffsetFit | None = None
+        self._n_since_offset = 0
+        self._motion_lock = threading.Lock()  # appended by the processing thread, read by /health
+        # host monotonic -> wall clock, fixed at start (results carry both)
+        self._wall_minus_mono_ns = time.time_ns() - time.monotonic_ns()
+
+    def set_camera_config(self, cfg: Any) -> None:
+        self.pairer.camera_latency_ns = cfg.transport_latency_s * 1e9
+        self.pairer.camera_clock.reset()  # a new exposure or frame rate changes the arrival pattern
+
+    def warm_up(self) -> None:
+        """Build the measurer now (loads or compiles the numba kernels)."""
+        self._current_measurer()
+
+    def _current_measurer(self) -> FrameMeasurer | None:
+        cal = self.calibration
+        if cal.generation != self._generation:
+            self._generation = cal.generation
+            if cal.camera is None or cal.field is None:
+                self._measurer = None
+            else:
+                self._measurer = FrameMeasurer(cal.camera, cal.field, measure_settings(self.settings.processing))
+        return self._measurer
+
+    def process(self, frame: Frame, robot: RobotDriver | None, robot_state: DeviceState) -> dict[str, Any]:
+        t0 = time.perf_counter()
+        t_exposure_ns, source = self.pairer.exposure_instant_ns(frame)
+        head: dict[str, Any] = {
+            "camera": self.name,
+            "seq": frame.seq,
+            "t_exposure_host_ns": t_exposure_ns,
+            "t_exposure_unix_ns": t_exposure_ns + self._wall_minus_mono_ns,  # a client can measure latency
+            "t_wall": _wall(t_exposure_ns + self._wall_minus_mono_ns),
+            "exposure_source": source,
+        }
+        measurer = self._current_measurer()
+        if measurer is None:
+            missing = [k for k in ("camera", "field") if getattr(self.calibration, k) is None]
+            fail = Failure(Reason.not_calibrated, f"no {' and no '.join(missing)} calibration is loaded")
+            return {**fail.to_dict(), **head}
+        if frame.image.ndim != 2 or frame.image.size == 0:
+            fail = Failure(Reason.bad_image, f"frame of shape {frame.image.shape} is not a grey image")
+            return {**fail.to_dict(), **head}
+        outcome = measurer.measure(frame.image, t_exposure_ns * 1e-9)
+        result = outcome.result
+        out: dict[str, Any] = {**result.to_dict(), **head, "mode": outcome.mode}
+        timings = {k: round(v, 3) for k, v in outcome.timings_ms.items()}
+        if isinstance(result, PoseResult):
+            self._add_flange(out, result, frame, t_exposure_ns, robot, robot_state)
+        timings["processing"] = round((time.perf_counter() - t0) * 1e3, 3)
+        timings["latency"] = round((time.monotonic_ns() - t_exposure_ns) * 1e-6, 3)
+        out["timings_ms"] = timings
+        if "T_field_camera" in frame.meta:  # simulation: the truth travels with the frame
+            out["truth"] = {"T_field_camera": frame.meta["T_field_camera"]}
+        return out
+
+    def _add_flange(
+        self,
+        out: dict[str, Any],
+        result: PoseResult,
+        frame: Frame,
+        t_exposure_ns: int,
+        robot: RobotDriver | None,
+        robot_state: DeviceState,
+    ) -> None:
+        out["T_base_flange"] = None
+        out["T_base_flange_measured"] = None
+        out["deviation"] = None
+        T_reported = None
+        if robot is None or robot_state is DeviceState.absent:
+            out["flange_reason"], out["flange_message"] = "robot_disconnected", "no robot is configured"
+        elif robot_state is not DeviceState.ok:
+            out["flange_reason"], out["flange_message"] = "robot_disconnected", f"the robot is {robot_state}"
+        else:
+            pairing = self.pairer.pair(frame, robot.history)
+            T_reported = pairing.T_base_flange
+            if T_reported is None:
+                out["flange_reason"], out["flange_message"] = "robot_disconnected", pairing.reason
+            else:
+                out["T_base_flange"] = _round_T(T_reported)
+        he = self.calibration.handeye
+        if he is None:
+            out.setdefault("flange_reason", "not_calibrated")
+            out.setdefault("flange_message", "no hand-eye calibration: the flange pose cannot be measured")
+            return
+        T_measured = he.T_base_field @ np.asarray(result.T_field_camera) @ inv_T(he.T_flange_camera)
+        out["T_base_flange_measured"] = _round_T(T_measured)
+        if T_reported is not None:
+            dpos, dang = pose_difference(T_measured, T_reported)
+            out["deviation"] = {
+                "position_mm": round(dpos, 4),
+                "angle_deg": round(dang, 5),
+                "vector_mm": [round(float(v), 4) for v in T_measured[:3, 3] - T_reported[:3, 3]],
+            }
+            with self._motion_lock:
+                self._motion.append((t_exposure_ns * 1e-9, T_measured[:3, 3].copy(), T_reported[:3, 3].copy()))
+                self._n_since_offset += 1
+
+    def time_offset_report(self) -> dict[str, Any] | None:
+        """The residual latency seen in the motion: frame times are late by ``offset_ms``."""
+        with self._motion_lock:
+            due = self._n_since_offset >= 50 and len(self._motion) >= 50
+            motion = list(self._motion) if due else []
+            if due:
+                self._n_since_offset = 0
+        if due:
+            t, pm, pr = (np.array(x) for x in zip(*motion, strict=True))
+            try:
+                self._offset = estimate_time_offset_s(t - t[0], pm, pr)
+            except ValueError:
+                self._offset = None
+        if self._offset is None:
+            return None
+        return {
+            "offset_ms": round(self._offset.offset_s * 1e3, 3),
+            "sigma_ms": round(self._offset.sigma_s * 1e3, 3),
+            "n": self._offset.n,
+        }

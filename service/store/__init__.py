@@ -1,0 +1,1 @@
+"""What is kept: measurements (SQLite), calibrations (versioned files), the file formats."""

@@ -1,0 +1,777 @@
+"""Measurement and event history in SQLite, written by one thread in batches.
+
+Durability. WAL mode with ``synchronous=FULL`` by default: every committed batch is
+fsynced into the WAL before :meth:`MeasurementStore.wait_written` returns, so an
+*acknowledged* row (``wait_written`` returned True) survives ``kill -9`` **and** a
+power cut. ``synchronous="NORMAL"`` also survives a process kill (committed pages
+sit in the kernel's page cache) but may lose the last transactions on power loss.
+FULL costs one fsync per *batch*, not per row: rows arriving during a commit go
+into the next batch (group commit), so the cost per row falls as the rate rises.
+A kill at any instant leaves a consistent database (WAL rollback rules).
+
+Queue. :meth:`~MeasurementStore.add_measurement` never blocks: it serialises the
+result in the caller's thread, queues it and returns its sequence number, which is
+also its row ``id``. With ``max_queue`` rows waiting (a failing or far too slow
+disk) it raises :class:`StoreFull` rather than drop anything silently: the caller
+knows that row is not stored (POST /measure answers 503), and ``stats()["dropped"]``
+counts it. Events are diagnostic: :meth:`~MeasurementStore.add_event` counts and
+logs a full queue instead of raising.
+
+A batch is committed when ``batch_max`` rows wait, when its oldest row has waited
+``flush_interval_s``, or at once when a caller waits in ``wait_written``: a triggered
+measurement is acknowledged after one fsync, not after the flush interval.
+
+Reads open their own short-lived connection; WAL lets them run beside the writer.
+Listings are **newest first** unless ``oldest_first=True``. One store per file: a
+second writer is refused at open (an ``flock`` on ``<db>.lock``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import fcntl
+import io
+import json
+import logging
+import math
+import os
+import sqlite3
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+from typing import Any, Literal
+
+from service.store.formats import null_for_unknown
+
+log = logging.getLogger(__name__)
+
+__all__ = ["CSV_COLUMNS", "EVENT_LEVELS", "SCHEMA_VERSION", "MeasurementStore", "StorageError", "StoreFull", "iso_utc"]
+
+EVENT_LEVELS = ("debug", "info", "warning", "error")
+# measurement columns besides the whole result's JSON; also the CSV export's columns
+CSV_COLUMNS = (
+    "id",
+    "t_wall",
+    "t_host_ns",
+    "camera",
+    "ok",
+    "reason",
+    "message",
+    "pose_of",
+    "x_mm",
+    "y_mm",
+    "z_mm",
+    "deviation_position_mm",
+    "deviation_angle_deg",
+    "rms_px",
+    "n_targets",
+)
+_ROW_COLUMNS = tuple(c for c in CSV_COLUMNS if c != "message")
+_RETENTION_CHUNK = 10_000
+_RETENTION_MAX_CHUNKS = 20  # per run, so queued rows never wait long behind a purge
+_RETRY_MAX_S = 1.0
+# a lock held by another process (a backup, a sqlite3 shell) fails a commit after this long; the batch
+# is then retried, and /health reports the outage from the first failure on
+_BUSY_TIMEOUT_S = 0.5
+_JOURNAL_SIZE_LIMIT_BYTES = 64 * 1024 * 1024
+
+Item = tuple[int, str, tuple[Any, ...]]  # (seq, or 0 for an event; "m" | "e"; column values)
+
+
+class StorageError(Exception):
+    """The measurement database cannot be opened, or the store is used after close()."""
+
+
+class StoreFull(StorageError):
+    """The write queue is full: the row was not accepted and will not be stored."""
+
+
+# ---------------------------------------------------------------- schema and migrations
+
+
+def _migrate_to_v1(conn: sqlite3.Connection) -> None:
+    conn.execute("""CREATE TABLE measurements (
+        id INTEGER PRIMARY KEY AUTOINCREMENT,
+        t_wall TEXT NOT NULL,       -- ISO 8601 UTC, fixed width: sorts as text
+        t_host_ns INTEGER,          -- time.monotonic_ns() of the frame (host clock)
+        camera TEXT, ok INTEGER NOT NULL, reason TEXT,
+        pose_of TEXT,               -- what x/y/z_mm are: base_flange_measured or field_camera
+        x_mm REAL, y_mm REAL, z_mm REAL,
+        deviation_position_mm REAL, deviation_angle_deg REAL, rms_px REAL, n_targets INTEGER,
+        result TEXT NOT NULL        -- the whole result, JSON
+    )""")
+    conn.execute("CREATE INDEX measurements_t_wall ON measurements (t_wall)")
+    conn.execute("""CREATE TABLE events (
+        id INTEGER PRIMARY KEY AUTOINCREMENT, t_wall TEXT NOT NULL, level TEXT NOT NULL,
+        kind TEXT NOT NULL, message TEXT NOT NULL, details TEXT  -- JSON object or NULL
+    )""")
+    conn.execute("CREATE INDEX events_t_wall ON events (t_wall)")
+
+
+# _MIGRATIONS[n] brings a database from user_version n to n + 1; append, never edit.
+_MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migrate_to_v1,)
+SCHEMA_VERSION = len(_MIGRATIONS)
+
+
+# ---------------------------------------------------------------- row conversion
+
+
+def iso_utc(t: datetime) -> str:
+    """Fixed-width ISO 8601 UTC text that sorts like the time.
+
+    >>> iso_utc(datetime.fromisoformat("2025-01-02T04:04:05.000006+01:00"))
+    '2025-01-02T03:04:05.000006Z'
+    """
+    if t.tzinfo is None:
+        raise ValueError(f"datetime {t.isoformat()} has no time zone: give an aware datetime (e.g. UTC)")
+    return t.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+
+
+def _t_wall_of(value: Any) -> str:
+    if value is None:
+        return iso_utc(datetime.now(UTC))
+    if isinstance(value, str):
+        try:
+            value = datetime.fromisoformat(value)
+        except ValueError:
+            raise ValueError(f"t_wall {value!r} is not an ISO 8601 time") from None
+    if not isinstance(value, datetime):
+        raise ValueError(f"t_wall must be an ISO 8601 string or an aware datetime, not {type(value).__name__}")
+    return iso_utc(value)
+
+
+def _json_default(o: Any) -> Any:
+    if hasattr(o, "tolist"):  # numpy arrays and scalars, without importing numpy
+        return o.tolist()
+    if isinstance(o, datetime):
+        return iso_utc(o)
+    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
+
+
+def _dumps(obj: Any) -> str:
+    """Compact strict JSON; NaN and infinities (no JSON for them) become null."""
+    try:
+        return json.dumps(obj, default=_json_default, separators=(",", ":"), allow_nan=False)
+    except ValueError:  # rare: only then pay for the walk
+        return json.dumps(null_for_unknown(obj), default=_json_default, separators=(",", ":"), allow_nan=False)
+
+
+def _real(x: Any) -> float | None:
+    if x is None:
+        return None
+    v = float(x)
+    return v if math.isfinite(v) else None
+
+
+def _pose_columns(result: Mapping[str, Any]) -> tuple[str | None, float | None, float | None, float | None]:
+    # the flange in base when hand-eye calibrated, else the camera in the field; pose_of says which
+    for key, name in (("T_base_flange_measured", "base_flange_measured"), ("T_field_camera", "field_camera")):
+        T = result.get(key)
+        if T is not None:
+            try:
+                return name, _real(T[0][3]), _real(T[1][3]), _real(T[2][3])
+            except (TypeError, IndexError, KeyError, ValueError):
+                raise ValueError(f"result[{key!r}] is not a 4x4 matrix") from None
+    return None, None, None, None
+
+
+def _measurement_row(result: Mapping[str, Any]) -> tuple[Any, ...]:
+    """Column values (without id) of one result; raises ValueError/TypeError on bad input."""
+    if not isinstance(result, Mapping):
+        raise TypeError(f"a measurement result must be a dict, not {type(result).__name__}")
+    if "ok" not in result:
+        raise ValueError("a measurement result must carry 'ok' (DESIGN section 4)")
+    n_targets = result.get("n_targets")
+    if n_targets is None and result.get("n_coded") is not None and result.get("n_uncoded") is not None:
+        n_targets = int(result["n_coded"]) + int(result["n_uncoded"])
+    dev_pos, dev_ang = result.get("deviation_position_mm"), result.get("deviation_angle_deg")
+    if isinstance(dev := result.get("deviation"), Mapping):
+        dev_pos, dev_ang = dev.get("position_mm", dev_pos), dev.get("angle_deg", dev_ang)
+    t_host_ns = result.get("t_host_ns", result.get("t_exposure_host_ns"))  # the worker's name: the exposure
+    camera, reason = result.get("camera"), result.get("reason")
+    return (
+        _t_wall_of(result.get("t_wall")),
+        None if t_host_ns is None else int(t_host_ns),
+        None if camera is None else str(camera),
+        1 if result["ok"] else 0,
+        None if reason is None else str(reason),
+        *_pose_columns(result),
+        _real(dev_pos),
+        _real(dev_ang),
+        _real(result.get("rms_px")),
+        None if n_targets is None else int(n_targets),
+        _dumps(result),
+    )
+
+
+def _event_row(kind: str, message: str, level: str, details: Mapping[str, Any] | None) -> tuple[Any, ...]:
+    if level not in EVENT_LEVELS:
+        raise ValueError(f"event level {level!r} is not one of {', '.join(EVENT_LEVELS)}")
+    if details is not None and not isinstance(details, Mapping):
+        raise TypeError(f"event details must be a dict or None, not {type(details).__name__}")
+    return (iso_utc(datetime.now(UTC)), level, str(kind), str(message), None if details is None else _dumps(details))
+
+
+_INSERT_MEASUREMENT = (
+    "INSERT INTO measurements (id, t_wall, t_host_ns, camera, ok, reason, pose_of, x_mm, y_mm, z_mm,"
+    " deviation_position_mm, deviation_angle_deg, rms_px, n_targets, result)"
+    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
+)
+_INSERT_EVENT = "INSERT INTO events (t_wall, level, kind, message, details) VALUES (?, ?, ?, ?, ?)"
+
+
+def _check_page(limit: int, offset: int) -> None:
+    for name, v in (("limit", limit), ("offset", offset)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise ValueError(f"{name} must be a non-negative integer, not {v!r}")
+
+
+def _where(t_from: datetime | None, t_to: datetime | None, **equal: Any) -> tuple[str, list[Any]]:
+    clauses = [
+        ("t_wall >= ?", None if t_from is None else iso_utc(t_from)),
+        ("t_wall < ?", None if t_to is None else iso_utc(t_to)),
+    ]
+    clauses += [(f"{column} = ?", value) for column, value in equal.items()]  # columns: ours, never input
+    used = [(c, v) for c, v in clauses if v is not None]
+    return (" WHERE " + " AND ".join(c for c, _ in used)) if used else "", [v for _, v in used]
+
+
+# ---------------------------------------------------------------- the store
+
+
+class MeasurementStore:
+    """Measurements and events in one SQLite file; one writer thread, any number of readers.
+
+    Parameters
+    ----------
+    path : the database file; created (with its directory) when missing.
+    batch_max : rows per transaction at most.
+    flush_interval_s : longest wait of a row for companions before its batch is committed.
+    retention_days : measurements and events older than this are deleted at start and every
+        ``maintenance_interval_s``; None keeps everything.
+    max_queue : rows waiting for the writer at most; beyond it ``add_measurement`` raises StoreFull.
+    synchronous : "FULL" (acknowledged rows survive power loss) or "NORMAL" (a process kill only).
+    maintenance_interval_s : seconds between retention runs and WAL truncations.
+
+    Raises
+    ------
+    StorageError
+        The file is not a SQLite database, is someone else's, has a newer schema, cannot be
+        created or written, or is already open in another store.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        batch_max: int = 256,
+        flush_interval_s: float = 0.1,
+        retention_days: float | None = 30.0,
+        max_queue: int = 100_000,
+        *,
+        synchronous: Literal["FULL", "NORMAL"] = "FULL",
+        maintenance_interval_s: float = 60.0,
+    ) -> None:
+        if batch_max < 1 or max_queue < 1 or flush_interval_s < 0 or maintenance_interval_s <= 0:
+            raise ValueError("batch_max, max_queue >= 1, flush_interval_s >= 0, maintenance_interval_s > 0")
+        if retention_days is not None and retention_days <= 0:
+            raise ValueError("retention_days must be positive, or None to keep everything")
+        if synchronous not in ("FULL", "NORMAL"):
+            raise ValueError(f"synchronous must be 'FULL' or 'NORMAL', not {synchronous!r}")
+        self.path = Path(path)
+        self.batch_max, self.max_queue = int(batch_max), int(max_queue)
+        self.flush_interval_s, self.maintenance_interval_s = float(flush_interval_s), float(maintenance_interval_s)
+        self.retention_days, self.synchronous = retention_days, synchronous
+
+        self._lock_fd = self._acquire_writer_lock()
+        try:
+            self._wconn = self._open_write_connection()
+            first_seq = self._last_used_id(self._wconn) + 1
+        except BaseException:
+            self._release_writer_lock()
+            raise
+        self._cond = threading.Condition()  # guards the queue and the sequence numbers
+        self._pending: deque[Item] = deque()
+        self._next_seq, self._written_seq, self._flush_upto, self._inflight = first_seq, first_seq - 1, 0, 0
+        self._stopping = self._closed = False
+        self._stop_deadline = math.inf
+        self._thread: threading.Thread | None = None
+        self._own_events: list[tuple[Any, ...]] = []  # the writer's error events, written with the next batch
+        self._counts = dict.fromkeys(
+            ("written", "events_written", "batches", "dropped", "events_dropped", "abandoned", "retention_deleted"), 0
+        )
+        self._last_error: str | None = None
+        self._last_error_t_wall: str | None = None
+        self._failing_since: float | None = None  # monotonic s of the first failed commit of the current outage
+
+    # ------------------------------------------------------------ opening
+
+    def _acquire_writer_lock(self) -> int:
+        lock_path = self.path.with_name(self.path.name + ".lock")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        except OSError as e:
+            raise StorageError(
+                f"the measurement database {self.path} cannot be created ({e.strerror}): "
+                f"check that {self.path.parent} is writable by the service user"
+            ) from e
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            os.close(fd)
+            if not isinstance(e, BlockingIOError):
+                raise StorageError(f"cannot lock {lock_path} ({e.strerror}): put the database on a local disk") from e
+            raise StorageError(
+                f"the measurement database {self.path} is already open for writing by another "
+                f"store or process (lock {lock_path}): run one posecell service per database"
+            ) from None
+        return fd
+
+    def _release_writer_lock(self) -> None:
+        if self._lock_fd >= 0:
+            os.close(self._lock_fd)  # closing drops the flock
+            self._lock_fd = -1
+
+    def _open_write_connection(self) -> sqlite3.Connection:
+        conn = None
+        try:
+            conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=5.0)
+            mode = conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+            if str(mode).lower() != "wal":
+                raise StorageError(
+                    f"the measurement database {self.path} cannot use WAL mode (journal_mode "
+                    f"is {mode}): put it on a local file system"
+                )
+            self._configure_write_connection(conn)
+            self._migrate(conn)
+            conn.execute(f"PRAGMA busy_timeout={int(_BUSY_TIMEOUT_S * 1000)}")  # opening may wait longer
+            return conn
+        except BaseException as e:
+            if conn is not None:
+                conn.close()
+            if isinstance(e, sqlite3.OperationalError):  # unable to open, read-only, I/O error
+                raise StorageError(
+                    f"the measurement database {self.path} cannot be opened for writing ({e}): check that it "
+                    f"and {self.path.parent} are writable by the service user and the disk works"
+                ) from e
+            if isinstance(e, sqlite3.Error):  # "file is not a database", "database disk image is malformed"
+                raise StorageError(
+                    f"the measurement database {self.path} is not a SQLite database or is damaged ({e}): move "
+                    "it aside (keep it if it holds history you need) and the service starts a new one"
+                ) from e
+            raise
+
+    def _configure_write_connection(self, conn: sqlite3.Connection) -> None:
+        """Pragmas of the writer's connection."""
+        conn.execute(f"PRAGMA synchronous={self.synchronous}")
+        conn.execute(f"PRAGMA journal_size_limit={_JOURNAL_SIZE_LIMIT_BYTES}")
+
+    def _migrate(self, conn: sqlite3.Connection) -> None:
+        version = conn.execute("PRAGMA user_version").fetchone()[0]
+        if version > SCHEMA_VERSION:
+            raise StorageError(
+                f"the measurement database {self.path} has schema version {version}, newer than "
+                f"this posecell's {SCHEMA_VERSION}: upgrade posecell or move the file aside"
+            )
+        tables = sorted(
+            r[0]
+            for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table' AND name NOT LIKE 'sqlite_%'")
+        )
+        if version == 0 and tables:
+            raise StorageError(
+                f"the measurement database {self.path} is a SQLite database but not posecell's "
+                f"(tables {', '.join(tables)}, no schema version): move it aside or choose another path"
+            )
+        for v in range(version, SCHEMA_VERSION):
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                _MIGRATIONS[v](conn)
+                conn.execute(f"PRAGMA user_version={v + 1}")  # transactional: a crash redoes the whole step
+                conn.execute("COMMIT")
+            except BaseException:
+                conn.execute("ROLLBACK")
+                raise
+            log.info("measurement database %s migrated to schema version %d", self.path, v + 1)
+
+    @staticmethod
+    def _last_used_id(conn: sqlite3.Connection) -> int:
+        # AUTOINCREMENT's sqlite_sequence remembers ids of purged rows: sequence numbers never repeat
+        row = conn.execute("SELECT seq FROM sqlite_sequence WHERE name = 'measurements'").fetchone()
+        max_id = conn.execute("SELECT max(id) FROM measurements").fetchone()[0]
+        return max(row[0] if row else 0, max_id or 0)
+
+    # ------------------------------------------------------------ lifecycle
+
+    def start(self) -> None:
+        """Start the writer thread (idempotent while open)."""
+        with self._cond:
+            if self._closed or self._stopping:
+                raise StorageError(f"the measurement store {self.path} is closed")
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="posecell-storage", daemon=True)
+                self._thread.start()
+
+    def close(self, timeout_s: float = 10.0) -> None:
+        """Write every queued row, commit, stop the writer and close the database (idempotent).
+
+        If the disk keeps failing for ``timeout_s``, the rows still queued are abandoned (none was
+        acknowledged), counted in ``stats()["abandoned"]`` and logged.
+        """
+        with self._cond:
+            if self._closed:
+                return
+            self._stopping = True
+            self._stop_deadline = time.monotonic() + timeout_s
+            thread = self._thread
+            self._cond.notify_all()
+        if thread is None:
+            self._run()  # never started: write what was queued from this thread
+        else:
+            thread.join(timeout_s + 5.0)
+            if thread.is_alive():
+                log.error("storage writer for %s did not stop within %.1f s", self.path, timeout_s + 5.0)
+                return
+        with self._cond:
+            self._closed = True
+        self._release_writer_lock()
+
+    def __enter__(self) -> MeasurementStore:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------ writing (any thread)
+
+    def add_measurement(self, result: Mapping[str, Any]) -> int:
+        """Queue one result (DESIGN section 4 dict); return its sequence number, which is its row id.
+
+        ``result`` is serialised now: later changes to the dict do not reach the database. Columns come
+        from ``ok``, ``reason``, ``camera``, ``t_host_ns``, ``t_wall`` (ISO 8601 with zone or an aware
+        datetime; now when absent), ``rms_px``, ``n_targets`` (or ``n_coded + n_uncoded``), the translation
+        of ``T_base_flange_measured`` (else ``T_field_camera``; ``pose_of`` says which) and
+        ``deviation_position_mm`` / ``deviation_angle_deg`` (or ``deviation: {"position_mm", "angle_deg"}``).
+
+        Raises
+        ------
+        StoreFull : ``max_queue`` rows are waiting; this one is not stored.
+        StorageError : the store is closed.
+        ValueError, TypeError : not a dict with ``ok``, or not JSON serialisable.
+        """
+        row = _measurement_row(result)
+        with self._cond:
+            if self._stopping:
+                raise StorageError(f"the measurement store {self.path} is closed")
+            if len(self._pending) >= self.max_queue:
+                self._counts["dropped"] += 1
+                raise StoreFull(
+                    f"{len(self._pending)} rows are waiting to be written to {self.path}; this "
+                    f"measurement is not stored (last error: {self._last_error})"
+                )
+            seq = self._next_seq
+            self._next_seq += 1
+            self._enqueue((seq, "m", row))
+        return seq
+
+    def add_event(self, kind: str, message: str, level: str = "info", details: Mapping[str, Any] | None = None) -> None:
+        """Queue one event (``level``: debug, info, warning or error); a full queue counts and logs it."""
+        row = _event_row(kind, message, level, details)
+        with self._cond:
+            if self._stopping:
+                raise StorageError(f"the measurement store {self.path} is closed")
+            if len(self._pending) >= self.max_queue:
+                self._counts["events_dropped"] += 1
+                log.warning("storage queue full: event %s %r not stored", kind, message)
+                return
+            self._enqueue((0, "e", row))
+
+    def _enqueue(self, item: Item) -> None:
+        self._pending.append(item)
+        if len(self._pending) in (1, self.batch_max):  # the only sizes the writer waits for
+            self._cond.notify_all()
+
+    def wait_written(self, seq: int, timeout_s: float) -> bool:
+        """Wait until measurement ``seq`` is committed (and fsynced under FULL); False on timeout."""
+        with self._cond:
+            if seq < 1 or seq >= self._next_seq:
+                raise ValueError(f"sequence number {seq} was never issued by this store")
+            if self._flush_upto < seq:  # the writer commits without waiting for companions
+                self._flush_upto = seq
+                self._cond.notify_all()
+            return self._cond.wait_for(lambda: self._written_seq >= seq, timeout_s)
+
+    # ------------------------------------------------------------ the writer thread
+
+    def _run(self) -> None:
+        conn = self._wconn
+        try:
+            self._maintenance(conn)
+            next_maintenance = time.monotonic() + self.maintenance_interval_s
+            while True:
+                batch = self._next_batch(next_maintenance)
+                if batch:
+                    self._commit_with_retry(conn, batch)
+                elif self._stopping:
+                    break
+                if time.monotonic() >= next_maintenance:
+                    self._maintenance(conn)
+                    next_maintenance = time.monotonic() + self.maintenance_interval_s
+            with contextlib.suppress(sqlite3.Error):
+                conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        except Exception:  # a bug, not a disk problem: say so loudly
+            log.exception("storage writer for %s failed", self.path)
+            raise
+        finally:
+            conn.close()
+
+    def _next_batch(self, next_maintenance: float) -> list[Item]:
+        with self._cond:
+            while not self._pending and not self._stopping:
+                if (remaining := next_maintenance - time.monotonic()) <= 0:
+                    return []
+                self._cond.wait(remaining)
+            deadline = time.monotonic() + self.flush_interval_s
+            while (
+                self._pending
+                and len(self._pending) < self.batch_max
+                and not self._stopping
+                and self._flush_upto <= self._written_seq
+                and (remaining := deadline - time.monotonic()) > 0
+            ):
+                self._cond.wait(remaining)
+            n = min(self.batch_max, len(self._pending))
+            self._inflight = n
+            return [self._pending.popleft() for _ in range(n)]
+
+    def _write_batch(self, conn: sqlite3.Connection, batch: list[Item], own_events: list[tuple[Any, ...]]) -> None:
+        """One transaction: the batch's rows plus the store's own events (errors, recovery)."""
+        conn.execute("BEGIN")
+        try:
+            conn.executemany(_INSERT_MEASUREMENT, [(seq, *row) for seq, tag, row in batch if tag == "m"])
+            conn.executemany(_INSERT_EVENT, [row for _, tag, row in batch if tag == "e"] + own_events)
+            conn.execute("COMMIT")
+        except BaseException:
+            with contextlib.suppress(sqlite3.Error):
+                conn.execute("ROLLBACK")
+            raise
+
+    def _record_error(self, e: sqlite3.Error) -> None:
+        self._last_error = f"{type(e).__name__}: {e}"
+        self._last_error_t_wall = iso_utc(datetime.now(UTC))
+
+    def _commit_with_retry(self, conn: sqlite3.Connection, batch: list[Item]) -> None:
+        delay_s, attempts, t_fail = 0.05, 0, 0.0
+        while True:
+            own_events = list(self._own_events)
+            if attempts:  # committed with the rows, so it is stored exactly when writing works again
+                own_events.append(
+                    _event_row(
+                        "storage_recovered",
+                        "writing to the measurement database works again",
+                        "warning",
+                        {"failed_attempts": attempts, "outage_s": round(time.monotonic() - t_fail, 3)},
+                    )
+                )
+            try:
+                self._write_batch(conn, batch, own_events)
+                break
+            except sqlite3.Error as e:
+                attempts += 1
+                self._record_error(e)
+                if attempts == 1:
+                    t_fail = time.monotonic()
+                    with self._cond:
+                        self._failing_since = t_fail
+                    log.error("writing %d rows to %s failed (%s); retrying", len(batch), self.path, e)
+                    self._own_events.append(
+                        _event_row(
+                            "storage_error",
+                            f"writing to the measurement database failed: {e}",
+                            "error",
+                            {"error": str(e), "rows_waiting": len(batch) + len(self._pending)},
+                        )
+                    )
+                with self._cond:
+                    if self._stopping and time.monotonic() >= self._stop_deadline:
+                        lost = len(batch) + len(self._pending)
+                        self._counts["abandoned"] += lost
+                        self._pending.clear()
+                        self._inflight = 0
+                        log.error("closing %s: %d unacknowledged rows abandoned after %s", self.path, lost, e)
+                        return
+                    self._cond.wait(delay_s)
+                delay_s = min(2 * delay_s, _RETRY_MAX_S)
+        if attempts:
+            log.warning("writing to %s works again after %d failed attempts", self.path, attempts)
+        self._own_events = []
+        seqs = [seq for seq, tag, _ in batch if tag == "m"]
+        with self._cond:
+            self._failing_since = None
+            self._written_seq = seqs[-1] if seqs else self._written_seq
+            self._counts["written"] += len(seqs)
+            self._counts["events_written"] += len(batch) - len(seqs) + len(own_events)
+            self._counts["batches"] += 1
+            self._inflight = 0
+            self._cond.notify_all()
+
+    def _maintenance(self, conn: sqlite3.Connection) -> None:
+        """Retention purge in chunks, then WAL truncation; errors are recorded, never raised."""
+        try:
+            if self.retention_days is not None:
+                cutoff = iso_utc(datetime.now(UTC) - timedelta(days=self.retention_days))
+                deleted = 0
+                for table in ("measurements", "events"):
+                    for _ in range(_RETENTION_MAX_CHUNKS):
+                        n = conn.execute(
+                            f"DELETE FROM {table} WHERE id IN (SELECT id FROM {table} WHERE t_wall < ? "
+                            f"ORDER BY t_wall LIMIT {_RETENTION_CHUNK})",
+                            (cutoff,),
+                        ).rowcount
+                        deleted += n
+                        if n < _RETENTION_CHUNK:
+                            break
+                if deleted:
+                    self._counts["retention_deleted"] += deleted
+                    log.info("retention: deleted %d rows older than %s from %s", deleted, cutoff, self.path)
+            conn.execute("PRAGMA busy_timeout=200")  # a long reader only postpones truncation to the next run
+            try:
+                conn.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()
+            finally:
+                conn.execute(f"PRAGMA busy_timeout={int(_BUSY_TIMEOUT_S * 1000)}")
+        except sqlite3.Error as e:
+            self._record_error(e)
+            log.warning("maintenance of %s failed: %s", self.path, e)
+
+    # ------------------------------------------------------------ reading (any thread)
+
+    def _select(self, sql: str, params: list[Any]) -> list[dict[str, Any]]:
+        try:
+            # mode=rw: a reader never creates an empty database where the real one went missing
+            uri = f"{self.path.absolute().as_uri()}?mode=rw"
+            with contextlib.closing(sqlite3.connect(uri, uri=True, timeout=5.0)) as conn:
+                conn.execute("PRAGMA query_only=ON")
+                conn.row_factory = sqlite3.Row
+                return [dict(r) for r in conn.execute(sql, params)]
+        except sqlite3.Error as e:
+            raise StorageError(f"cannot read the measurement database {self.path}: {e}") from e
+
+    def measurements(
+        self,
+        t_from: datetime | None = None,
+        t_to: datetime | None = None,
+        limit: int = 1000,
+        offset: int = 0,
+        ok: bool | None = None,
+        camera: str | None = None,
+        *,
+        oldest_first: bool = False,
+    ) -> list[dict[str, Any]]:
+        """Measurements with ``t_from <= t_wall < t_to``, newest first unless ``oldest_first``.
+
+        Each row has the columns of CSV_COLUMNS but ``message`` (``ok`` a bool) and ``result``, the
+        stored result dict. Datetimes must carry a time zone.
+        """
+        _check_page(limit, offset)
+        where, params = _where(t_from, t_to, ok=None if ok is None else int(bool(ok)), camera=camera)
+        order = "ASC" if oldest_first else "DESC"
+        rows = self._select(
+            f"SELECT {', '.join(_ROW_COLUMNS)}, result FROM measurements{where} "
+            f"ORDER BY t_wall {order}, id {order} LIMIT ? OFFSET ?",
+            [*params, limit, offset],
+        )
+        for r in rows:
+            r["ok"], r["result"] = bool(r["ok"]), json.loads(r["result"])
+        return rows
+
+    def count(
+        self,
+        t_from: datetime | None = None,
+        t_to: datetime | None = None,
+        ok: bool | None = None,
+        camera: str | None = None,
+    ) -> int:
+        """Number of measurements matching the filters of :meth:`measurements`."""
+        where, params = _where(t_from, t_to, ok=None if ok is None else int(bool(ok)), camera=camera)
+        return int(self._select(f"SELECT count(*) AS n FROM measurements{where}", params)[0]["n"])
+
+    def events(
+        self,
+        t_from: datetime | None = None,
+        t_to: datetime | None = None,
+        limit: int = 1000,
+        offset: int = 0,
+        level: str | None = None,
+        kind: str | None = None,
+        *,
+        oldest_first: bool = False,
+    ) -> list[dict[str, Any]]:
+        """Events (id, t_wall, level, kind, message, details dict or None), newest first by default."""
+        _check_page(limit, offset)
+        if level is not None and level not in EVENT_LEVELS:
+            raise ValueError(f"event level {level!r} is not one of {', '.join(EVENT_LEVELS)}")
+        where, params = _where(t_from, t_to, level=level, kind=kind)
+        order = "ASC" if oldest_first else "DESC"
+        rows = self._select(
+            f"SELECT id, t_wall, level, kind, message, details FROM events{where} "
+            f"ORDER BY t_wall {order}, id {order} LIMIT ? OFFSET ?",
+            [*params, limit, offset],
+        )
+        for r in rows:
+            r["details"] = None if r["details"] is None else json.loads(r["details"])
+        return rows
+
+    @staticmethod
+    def export_csv(rows: list[dict[str, Any]]) -> str:
+        """Rows of :meth:`measurements` as CSV with the header CSV_COLUMNS (``ok`` as true/false)."""
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\r\n")
+        w.writerow(CSV_COLUMNS)
+        for r in rows:
+            extra = {"ok": "true" if r.get("ok") else "false", "message": (r.get("result") or {}).get("message")}
+            w.writerow(["" if (v := extra.get(c, r.get(c))) is None else v for c in CSV_COLUMNS])
+        return buf.getvalue()
+
+    def health(self) -> tuple[str, str]:
+        """``("ok", "")``, or ``("degraded", sentence)`` while commits fail or the writer is gone."""
+        with self._cond:
+            failing_since, queued = self._failing_since, len(self._pending) + self._inflight
+            thread, closed = self._thread, self._closed or self._stopping
+        if closed:
+            return "degraded", f"the measurement store {self.path} is closed"
+        if thread is not None and not thread.is_alive():
+            return "degraded", f"the storage writer for {self.path} has stopped (see the log); nothing is stored"
+        if failing_since is not None:
+            return "degraded", (
+                f"writing to the measurement database has failed for "
+                f"{time.monotonic() - failing_since:.1f} s ({self._last_error}); {queued} rows "
+                "wait and are retried"
+            )
+        return "ok", ""
+
+    def stats(self) -> dict[str, Any]:
+        """Counters since open (queued, written, dropped, ...), database size, state and the last write error."""
+        state, error = self.health()
+        with self._cond:
+            out: dict[str, Any] = {
+                "state": state,
+                "error": error,
+                "queued": len(self._pending) + self._inflight,
+                "last_written_seq": self._written_seq,
+                **self._counts,
+            }
+        size = 0
+        for suffix in ("", "-wal"):
+            with contextlib.suppress(OSError):
+                size += os.path.getsize(f"{self.path}{suffix}")
+        out.update(
+            db_size_bytes=size,
+            synchronous=self.synchronous,
+            last_error=self._last_error,
+            last_error_t_wall=self._last_error_t_wall,
+        )
+        return out

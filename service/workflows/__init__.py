@@ -1,0 +1,1 @@
+"""The offline verbs' work: calibrations, simulation, the targets sheet, the demo."""
