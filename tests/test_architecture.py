@@ -9,9 +9,27 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PURE_DIRS = [ROOT / "service" / "core", ROOT / "service" / "sim"]
-FORBIDDEN_MODULES = {"fastapi", "gi", "rtde_receive", "rtde_control", "ur_rtde", "threading", "time",
-                     "asyncio", "uvicorn", "sqlite3", "logging", "socket", "requests", "httpx", "os",
-                     "pathlib", "subprocess", "api", "drivers"}
+FORBIDDEN_MODULES = {
+    "fastapi",
+    "gi",
+    "rtde_receive",
+    "rtde_control",
+    "ur_rtde",
+    "threading",
+    "time",
+    "asyncio",
+    "uvicorn",
+    "sqlite3",
+    "logging",
+    "socket",
+    "requests",
+    "httpx",
+    "os",
+    "pathlib",
+    "subprocess",
+    "api",
+    "drivers",
+}
 FORBIDDEN_CALLS = {"open", "print", "input"}
 FORBIDDEN_ATTRS = {"imread", "imwrite", "VideoCapture", "imshow", "waitKey"}
 

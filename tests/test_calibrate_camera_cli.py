@@ -24,13 +24,25 @@ from tests.core.test_bundle import NOISE_PX, TRUE_CAMERA, convergent_poses, fiel
 from tests.core.test_rig import SECOND_CAMERA, T_MASTER_CAMERA1, rig_images
 
 #: (view angle from the plate deg, roll deg, azimuth deg): convergent views from all sides, rolled
-VIEWS = [(55, 0, 0), (55, 90, 40), (60, 180, 80), (50, 270, 120), (55, 0, 160), (60, 90, 200),
-         (55, 180, 240), (50, 270, 280), (58, 45, 320), (52, 135, 20)]
+VIEWS = [
+    (55, 0, 0),
+    (55, 90, 40),
+    (60, 180, 80),
+    (50, 270, 120),
+    (55, 0, 160),
+    (60, 90, 200),
+    (55, 180, 240),
+    (50, 270, 280),
+    (58, 45, 320),
+    (52, 135, 20),
+]
 
 
 def write_observations(path, images) -> None:
-    formats.write_json_atomic(path, formats.image_observations_to_json(
-        [formats.ImageObservations(im.name, list(im.ids), im.uv) for im in images]))
+    formats.write_json_atomic(
+        path,
+        formats.image_observations_to_json([formats.ImageObservations(im.name, list(im.ids), im.uv) for im in images]),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -41,19 +53,33 @@ def rendered(tmp_path_factory):
     plate = scene.reference_field()
     for k, (angle, roll, azimuth) in enumerate(VIEWS):
         T = scene.reference_pose(angle, 1150.0, roll, azimuth)
-        formats.write_image(d / "images" / f"view{k:02d}.png",
-                            render_frame(TRUE_CAMERA, plate, T, RenderSettings(), rng).image)
+        formats.write_image(
+            d / "images" / f"view{k:02d}.png", render_frame(TRUE_CAMERA, plate, T, RenderSettings(), rng).image
+        )
     formats.write_field(d / "field.json", plate)
-    formats.write_camera(d / "start.json", BrownFraser(TRUE_CAMERA.width, TRUE_CAMERA.height,
-                                                       TRUE_CAMERA.pixel_size_mm, 12.3))
+    formats.write_camera(
+        d / "start.json", BrownFraser(TRUE_CAMERA.width, TRUE_CAMERA.height, TRUE_CAMERA.pixel_size_mm, 12.3)
+    )
     return d
 
 
 def test_calibrate_camera_from_images_writes_a_camera_the_pipeline_reads(rendered, capsys):
     out, refined = rendered / "camera.json", rendered / "refined.json"
-    code = cli.main(["calibrate", "camera", "--field", str(rendered / "field.json"), "--camera",
-                     str(rendered / "start.json"), "-o", str(out), "--field-out", str(refined),
-                     str(rendered / "images")])
+    code = cli.main(
+        [
+            "calibrate",
+            "camera",
+            "--field",
+            str(rendered / "field.json"),
+            "--camera",
+            str(rendered / "start.json"),
+            "-o",
+            str(out),
+            "--field-out",
+            str(refined),
+            str(rendered / "images"),
+        ]
+    )
     captured = capsys.readouterr()
     assert code == 0, captured.err
     assert "measuring [" in captured.err and "adjusting 10 images" in captured.err  # the progress
@@ -77,10 +103,29 @@ def test_calibrate_camera_from_observations_with_fixed_parameters(tmp_path, caps
     field = field_3d(rng)
     formats.write_field(tmp_path / "field.json", field)
     write_observations(tmp_path / "obs.json", observe(rng, field, convergent_poses(rng, 12)))
-    code = cli.main(["calibrate", "camera", "--field", str(tmp_path / "field.json"), "--observations",
-                     str(tmp_path / "obs.json"), "--c-mm", "12.3", "--pixel-size-mm", "0.0067", "--image-size",
-                     "1300x1030", "--fix", "K3,B1,B2", "--sigma-px", str(NOISE_PX), "-q", "-o",
-                     str(tmp_path / "camera.json")])
+    code = cli.main(
+        [
+            "calibrate",
+            "camera",
+            "--field",
+            str(tmp_path / "field.json"),
+            "--observations",
+            str(tmp_path / "obs.json"),
+            "--c-mm",
+            "12.3",
+            "--pixel-size-mm",
+            "0.0067",
+            "--image-size",
+            "1300x1030",
+            "--fix",
+            "K3,B1,B2",
+            "--sigma-px",
+            str(NOISE_PX),
+            "-q",
+            "-o",
+            str(tmp_path / "camera.json"),
+        ]
+    )
     captured = capsys.readouterr()
     assert code == 0, captured.err
     assert all("warning:" in line for line in captured.err.splitlines())  # -q: no progress, warnings only
@@ -94,9 +139,20 @@ def test_too_few_images_fail_with_one_sentence_and_the_advice(tmp_path, capsys, 
     field = field_3d(rng)
     formats.write_field(tmp_path / "field.json", field)
     write_observations(tmp_path / "obs.json", observe(rng, field, convergent_poses(rng, 2)))
-    code = cli.main(["calibrate", "camera", "--field", str(tmp_path / "field.json"), "--observations",
-                     str(tmp_path / "obs.json"), "--camera", str(_camera_file(tmp_path)), "-o",
-                     str(tmp_path / "camera.json")])
+    code = cli.main(
+        [
+            "calibrate",
+            "camera",
+            "--field",
+            str(tmp_path / "field.json"),
+            "--observations",
+            str(tmp_path / "obs.json"),
+            "--camera",
+            str(_camera_file(tmp_path)),
+            "-o",
+            str(tmp_path / "camera.json"),
+        ]
+    )
     captured = capsys.readouterr()
     assert code == 1
     err = [line for line in captured.err.splitlines() if line.startswith("posecell calibrate camera:")]
@@ -110,25 +166,49 @@ def test_images_parallel_to_the_plate_fail_with_the_reason(tmp_path, capsys, rng
     poses = [scene.reference_pose(90.0, 1000.0 + 40 * k, 90.0 * k, 0.0, (25.0 * k, 0, 0)) for k in range(6)]
     formats.write_field(tmp_path / "field.json", plate)
     write_observations(tmp_path / "obs.json", observe(rng, plate, poses))
-    code = cli.main(["calibrate", "camera", "--field", str(tmp_path / "field.json"), "--observations",
-                     str(tmp_path / "obs.json"), "--camera", str(_camera_file(tmp_path)), "-q", "-o",
-                     str(tmp_path / "camera.json")])
+    code = cli.main(
+        [
+            "calibrate",
+            "camera",
+            "--field",
+            str(tmp_path / "field.json"),
+            "--observations",
+            str(tmp_path / "obs.json"),
+            "--camera",
+            str(_camera_file(tmp_path)),
+            "-q",
+            "-o",
+            str(tmp_path / "camera.json"),
+        ]
+    )
     captured = capsys.readouterr()
     assert code == 1 and "head-on" in captured.err and "convergent" in captured.err
 
 
-@pytest.mark.parametrize("extra, words", [
-    (["--fix", "K9"], "unknown camera parameter"),
-    (["--scale-bar", "T1,T2"], "scale bar"),
-    (["--image-size", "1300"], "WIDTHxHEIGHT"),
-    (["--camera", "missing.json"], "no such file"),
-])
+@pytest.mark.parametrize(
+    "extra, words",
+    [
+        (["--fix", "K9"], "unknown camera parameter"),
+        (["--scale-bar", "T1,T2"], "scale bar"),
+        (["--image-size", "1300"], "WIDTHxHEIGHT"),
+        (["--camera", "missing.json"], "no such file"),
+    ],
+)
 def test_bad_options_exit_2_with_one_sentence(tmp_path, capsys, rng, extra, words):
     field = field_3d(rng, 20)
     formats.write_field(tmp_path / "field.json", field)
     write_observations(tmp_path / "obs.json", observe(rng, field, convergent_poses(rng, 4)))
-    args = ["calibrate", "camera", "--field", str(tmp_path / "field.json"), "--observations",
-            str(tmp_path / "obs.json"), "-q", "-o", str(tmp_path / "c.json")]
+    args = [
+        "calibrate",
+        "camera",
+        "--field",
+        str(tmp_path / "field.json"),
+        "--observations",
+        str(tmp_path / "obs.json"),
+        "-q",
+        "-o",
+        str(tmp_path / "c.json"),
+    ]
     if "--camera" not in extra:
         args += ["--c-mm", "12", "--pixel-size-mm", "0.0067", "--image-size", "1300x1030"]
     code = cli.main(args + extra)
@@ -139,9 +219,20 @@ def test_bad_options_exit_2_with_one_sentence(tmp_path, capsys, rng, extra, word
 def test_malformed_observations_file_exits_2(tmp_path, capsys, rng):
     formats.write_field(tmp_path / "field.json", field_3d(rng, 10))
     (tmp_path / "obs.json").write_text('{"images": [{"name": "a", "points": [{"id": "T1"}]}]}')
-    code = cli.main(["calibrate", "camera", "--field", str(tmp_path / "field.json"), "--observations",
-                     str(tmp_path / "obs.json"), "--camera", str(_camera_file(tmp_path)), "-o",
-                     str(tmp_path / "c.json")])
+    code = cli.main(
+        [
+            "calibrate",
+            "camera",
+            "--field",
+            str(tmp_path / "field.json"),
+            "--observations",
+            str(tmp_path / "obs.json"),
+            "--camera",
+            str(_camera_file(tmp_path)),
+            "-o",
+            str(tmp_path / "c.json"),
+        ]
+    )
     assert code == 2 and "point #0" in capsys.readouterr().err
 
 
@@ -150,13 +241,31 @@ def test_calibrate_rig_from_observations_writes_a_rig(tmp_path, capsys, rng):
     cams = (TRUE_CAMERA, SECOND_CAMERA)
     images = rig_images(rng, field, convergent_poses(rng, 6), cams, (np.eye(4), T_MASTER_CAMERA1))
     formats.write_field(tmp_path / "field.json", field)
-    formats.write_json_atomic(tmp_path / "obs.json", formats.image_observations_to_json(
-        [formats.ImageObservations(im.name, list(im.ids), im.uv, im.camera, im.epoch) for im in images]))
+    formats.write_json_atomic(
+        tmp_path / "obs.json",
+        formats.image_observations_to_json(
+            [formats.ImageObservations(im.name, list(im.ids), im.uv, im.camera, im.epoch) for im in images]
+        ),
+    )
     for k, cam in enumerate(cams):
         formats.write_camera(tmp_path / f"cam{k}.json", cam)
-    code = cli.main(["calibrate", "rig", "--field", str(tmp_path / "field.json"), "--camera",
-                     str(tmp_path / "cam0.json"), str(tmp_path / "cam1.json"), "--observations",
-                     str(tmp_path / "obs.json"), "--sigma-px", str(NOISE_PX), "-o", str(tmp_path / "rig.json")])
+    code = cli.main(
+        [
+            "calibrate",
+            "rig",
+            "--field",
+            str(tmp_path / "field.json"),
+            "--camera",
+            str(tmp_path / "cam0.json"),
+            str(tmp_path / "cam1.json"),
+            "--observations",
+            str(tmp_path / "obs.json"),
+            "--sigma-px",
+            str(NOISE_PX),
+            "-o",
+            str(tmp_path / "rig.json"),
+        ]
+    )
     captured = capsys.readouterr()
     assert code == 0, captured.err
     rig = rig_from_dict(json.loads((tmp_path / "rig.json").read_text()))
@@ -175,9 +284,22 @@ def test_calibrate_rig_from_image_folders(tmp_path, capsys):
             formats.write_image(tmp_path / f"cam{k}" / f"shot{e}.png", image)
     formats.write_field(tmp_path / "field.json", plate)
     formats.write_camera(tmp_path / "cam.json", TRUE_CAMERA)
-    code = cli.main(["calibrate", "rig", "--field", str(tmp_path / "field.json"), "--camera",
-                     str(tmp_path / "cam.json"), str(tmp_path / "cam.json"), "--images", str(tmp_path / "cam0"),
-                     str(tmp_path / "cam1"), "-o", str(tmp_path / "rig.json")])
+    code = cli.main(
+        [
+            "calibrate",
+            "rig",
+            "--field",
+            str(tmp_path / "field.json"),
+            "--camera",
+            str(tmp_path / "cam.json"),
+            str(tmp_path / "cam.json"),
+            "--images",
+            str(tmp_path / "cam0"),
+            str(tmp_path / "cam1"),
+            "-o",
+            str(tmp_path / "rig.json"),
+        ]
+    )
     captured = capsys.readouterr()
     assert code == 0, captured.err
     out = json.loads(captured.out)
@@ -212,10 +334,31 @@ def test_real_panel_camera_self_calibrates_to_a_thirtieth_of_a_pixel(tmp_path, c
     data = shared_data(PANEL)
     pixel_mm = 23.5 / 6000 * 3  # Nikon D5600, images scaled down 3x
     out, refined = tmp_path / "camera.json", tmp_path / "panel.json"
-    code = cli.main(["calibrate", "camera", "--field", str(data / "Positions-3D-14bit_lookup.txt"), "--c-mm", "24",
-                     "--pixel-size-mm", str(pixel_mm), "--code-family", "aicon14", "--min-contrast-dn", "40",
-                     "--min-area-px", "20", "--max-area-px", "1000", "-o", str(out), "--field-out", str(refined),
-                     str(data / "images")])
+    code = cli.main(
+        [
+            "calibrate",
+            "camera",
+            "--field",
+            str(data / "Positions-3D-14bit_lookup.txt"),
+            "--c-mm",
+            "24",
+            "--pixel-size-mm",
+            str(pixel_mm),
+            "--code-family",
+            "aicon14",
+            "--min-contrast-dn",
+            "40",
+            "--min-area-px",
+            "20",
+            "--max-area-px",
+            "1000",
+            "-o",
+            str(out),
+            "--field-out",
+            str(refined),
+            str(data / "images"),
+        ]
+    )
     captured = capsys.readouterr()
     assert code == 0, captured.err
     cal = json.loads(out.read_text())

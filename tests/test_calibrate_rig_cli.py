@@ -99,8 +99,12 @@ def test_pairing_by_time_within_the_tolerance(tmp_path):
     with pytest.raises(ValueError, match=r"without a partner \(a/img3.png\)"):
         _rig_shots([str(d0), str(d1)], pair_by="time")
     shots, left_out, _ = _rig_shots([str(d0), str(d1)], pair_by="time", drop_unpaired=True)
-    assert epochs_of(shots) == [["img0.png", "other0.png"], ["img1.png", "other1.png"], ["img2.png", "other2.png"],
-                                ["img4.png", "other3.png"]]
+    assert epochs_of(shots) == [
+        ["img0.png", "other0.png"],
+        ["img1.png", "other1.png"],
+        ["img2.png", "other2.png"],
+        ["img4.png", "other3.png"],
+    ]
     assert [p.name for p in left_out] == ["img3.png"]
 
 
@@ -145,8 +149,18 @@ def test_explicit_pairs_file(tmp_path):
 def rig_files(tmp_path: Path, field) -> list[str]:
     formats.write_field(tmp_path / "field.json", field)
     formats.write_camera(tmp_path / "cam.json", TRUE_CAMERA)
-    return ["calibrate", "rig", "--field", str(tmp_path / "field.json"), "--camera", str(tmp_path / "cam.json"),
-            str(tmp_path / "cam.json"), "-o", str(tmp_path / "rig.json"), "-q"]
+    return [
+        "calibrate",
+        "rig",
+        "--field",
+        str(tmp_path / "field.json"),
+        "--camera",
+        str(tmp_path / "cam.json"),
+        str(tmp_path / "cam.json"),
+        "-o",
+        str(tmp_path / "rig.json"),
+        "-q",
+    ]
 
 
 def test_cli_refuses_a_missing_frame_with_exit_code_2(tmp_path, capsys):
@@ -161,8 +175,9 @@ def test_cli_refuses_a_missing_frame_with_exit_code_2(tmp_path, capsys):
 
 def test_cli_refuses_two_images_of_one_camera_in_an_epoch(tmp_path, capsys, rng):
     field = field_3d(rng, 60)
-    images = rig_images(rng, field, convergent_poses(rng, 3), (TRUE_CAMERA, SECOND_CAMERA),
-                        (np.eye(4), T_MASTER_CAMERA1))
+    images = rig_images(
+        rng, field, convergent_poses(rng, 3), (TRUE_CAMERA, SECOND_CAMERA), (np.eye(4), T_MASTER_CAMERA1)
+    )
     obs = [formats.ImageObservations(im.name, list(im.ids), im.uv, im.camera, im.epoch) for im in images]
     obs[1] = obs[1]._replace(camera=0)  # e0's second image claims camera 0 too
     formats.write_json_atomic(tmp_path / "obs.json", formats.image_observations_to_json(obs))
@@ -174,8 +189,9 @@ def test_cli_refuses_two_images_of_one_camera_in_an_epoch(tmp_path, capsys, rng)
 def test_cli_rejects_pairing_options_that_do_not_apply(tmp_path, capsys):
     d0 = touch(tmp_path / "cam0", "a.png")
     d1 = touch(tmp_path / "cam1", "a.png")
-    code = cli.main([*rig_files(tmp_path, scene.reference_field()), "--images", str(d0), str(d1),
-                     "--time-tolerance-s", "0.01"])
+    code = cli.main(
+        [*rig_files(tmp_path, scene.reference_field()), "--images", str(d0), str(d1), "--time-tolerance-s", "0.01"]
+    )
     assert code == 2 and "--time-tolerance-s is for --pair-by time" in capsys.readouterr().err
 
 

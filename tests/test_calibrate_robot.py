@@ -30,9 +30,24 @@ def test_calibrate_robot_recovers_the_simulated_arm(tmp_path):
     p = np.array([T[:3, :3] @ tool + T[:3, 3] for T in true.fk(q)]) + rng.normal(0, 0.02, (120, 3))
     _write(tmp_path / "cal.csv", q[:100], p[:100])
     _write(tmp_path / "test.csv", q[100:], p[100:])
-    r = subprocess.run([str(POSECELL), "calibrate", "robot", "--robot", "kr15", "--samples", str(tmp_path / "cal.csv"),
-                        "--test", str(tmp_path / "test.csv"), "--tool-mm", *map(str, tool)],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [
+            str(POSECELL),
+            "calibrate",
+            "robot",
+            "--robot",
+            "kr15",
+            "--samples",
+            str(tmp_path / "cal.csv"),
+            "--test",
+            str(tmp_path / "test.csv"),
+            "--tool-mm",
+            *map(str, tool),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert 0.3 < out["test"]["nominal_mm"]["mean_mm"]  # the arm's errors, with the base fitted
@@ -41,6 +56,10 @@ def test_calibrate_robot_recovers_the_simulated_arm(tmp_path):
 
 def test_calibrate_robot_refuses_a_file_without_joint_columns(tmp_path):
     (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
-    r = subprocess.run([str(POSECELL), "calibrate", "robot", "--robot", "ur5", "--samples", str(tmp_path / "bad.csv")],
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [str(POSECELL), "calibrate", "robot", "--robot", "ur5", "--samples", str(tmp_path / "bad.csv")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 2 and "joint_1" in r.stderr and "Traceback" not in r.stderr

@@ -14,9 +14,22 @@ from service.store.calibrations import CalibrationError, CalibrationKind, Calibr
 
 
 def camera(c_mm: float) -> dict:
-    return {"model": "brown-fraser", "width": 1300, "height": 1030, "pixel_size_mm": [0.0067, 0.0067],
-            "c_mm": c_mm, "x0_mm": 0.0, "y0_mm": 0.0, "K1": 0.0, "K2": 0.0, "K3": 0.0, "P1": 0.0, "P2": 0.0,
-            "B1": 0.0, "B2": 0.0}
+    return {
+        "model": "brown-fraser",
+        "width": 1300,
+        "height": 1030,
+        "pixel_size_mm": [0.0067, 0.0067],
+        "c_mm": c_mm,
+        "x0_mm": 0.0,
+        "y0_mm": 0.0,
+        "K1": 0.0,
+        "K2": 0.0,
+        "K3": 0.0,
+        "P1": 0.0,
+        "P2": 0.0,
+        "B1": 0.0,
+        "B2": 0.0,
+    }
 
 
 @pytest.fixture

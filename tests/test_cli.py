@@ -37,8 +37,15 @@ def scene(tmp_path):
 
 def test_resect_prints_the_pose_of_design_section_4(scene):
     d, T_true, points = scene
-    r = run("resect", "--camera", str(d / "camera.json"), "--field", str(d / "field.json"),
-            "--points", str(d / "points.json"))
+    r = run(
+        "resect",
+        "--camera",
+        str(d / "camera.json"),
+        "--field",
+        str(d / "field.json"),
+        "--points",
+        str(d / "points.json"),
+    )
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["ok"] is True
@@ -54,8 +61,17 @@ def test_resect_reports_and_rejects_a_gross_error(scene):
     d, T_true, points = scene
     points[3]["uv"][0] += 25.0
     (d / "points.json").write_text(json.dumps(points))
-    r = run("resect", "--camera", str(d / "camera.json"), "--field", str(d / "field.json"),
-            "--points", str(d / "points.json"), "--sigma-px", "0.05")
+    r = run(
+        "resect",
+        "--camera",
+        str(d / "camera.json"),
+        "--field",
+        str(d / "field.json"),
+        "--points",
+        str(d / "points.json"),
+        "--sigma-px",
+        "0.05",
+    )
     out = json.loads(r.stdout)
     assert out["rejected"] == [points[3]["id"]]
     assert np.allclose(np.array(out["T_field_camera"])[:3, 3], T_true[:3, 3], atol=1e-3)
@@ -64,8 +80,9 @@ def test_resect_reports_and_rejects_a_gross_error(scene):
 def test_resect_with_too_few_points_fails_with_one_sentence(scene):
     d, _, points = scene
     (d / "few.json").write_text(json.dumps(points[:3]))
-    r = run("resect", "--camera", str(d / "camera.json"), "--field", str(d / "field.json"),
-            "--points", str(d / "few.json"))
+    r = run(
+        "resect", "--camera", str(d / "camera.json"), "--field", str(d / "field.json"), "--points", str(d / "few.json")
+    )
     assert r.returncode == 1
     assert json.loads(r.stdout)["reason"] == "too_few_targets"
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
@@ -83,8 +100,15 @@ def test_resect_with_too_few_points_fails_with_one_sentence(scene):
 def test_resect_bad_points_file_gives_a_clear_error(scene, setup, expected):
     d, _, _ = scene
     setup(d)
-    r = run("resect", "--camera", str(d / "camera.json"), "--field", str(d / "field.json"),
-            "--points", str(d / "missing.json"))
+    r = run(
+        "resect",
+        "--camera",
+        str(d / "camera.json"),
+        "--field",
+        str(d / "field.json"),
+        "--points",
+        str(d / "missing.json"),
+    )
     assert r.returncode == 2
     assert expected in r.stderr
     assert "Traceback" not in r.stderr
@@ -147,8 +171,22 @@ def test_unknown_verb_is_a_usage_error():
 
 
 def test_targets_sheet_writes_an_svg_and_the_field_of_that_sheet(tmp_path):
-    r = run("targets", "sheet", "--svg", str(tmp_path / "s.svg"), "--field", str(tmp_path / "f.json"),
-            "--coded", "12", "--uncoded", "40", "--width-mm", "400", "--height-mm", "300")
+    r = run(
+        "targets",
+        "sheet",
+        "--svg",
+        str(tmp_path / "s.svg"),
+        "--field",
+        str(tmp_path / "f.json"),
+        "--coded",
+        "12",
+        "--uncoded",
+        "40",
+        "--width-mm",
+        "400",
+        "--height-mm",
+        "300",
+    )
     assert r.returncode == 0, r.stderr
     field = formats.read_field(tmp_path / "f.json")
     svg = (tmp_path / "s.svg").read_text()
@@ -158,8 +196,7 @@ def test_targets_sheet_writes_an_svg_and_the_field_of_that_sheet(tmp_path):
 
 
 def test_targets_sheet_with_impossible_options_is_a_clear_error(tmp_path):
-    r = run("targets", "sheet", "--svg", str(tmp_path / "s.svg"), "--field", str(tmp_path / "f.json"),
-            "--coded", "500")
+    r = run("targets", "sheet", "--svg", str(tmp_path / "s.svg"), "--field", str(tmp_path / "f.json"), "--coded", "500")
     assert r.returncode == 2 and "outside the family" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "s.svg").exists()
 
@@ -186,10 +223,16 @@ def test_measure_goes_on_past_unreadable_black_and_saturated_images(tmp_path):
     (tmp_path / "garbage.png").write_bytes(b"this is not a png")
     cv2.imwrite(str(tmp_path / "black.png"), np.zeros((1030, 1300), np.uint8))
     cv2.imwrite(str(tmp_path / "white.tif"), np.full((1030, 1300), 65535, np.uint16))
-    images = [tmp_path / "garbage.png", tmp_path / "black.png", tmp_path / "white.tif",
-              tmp_path / "missing.pgm", tmp_path / "frame_0000.png"]
-    r = run("measure", "--camera", str(tmp_path / "camera.json"), "--field", str(tmp_path / "field.json"),
-            *map(str, images))
+    images = [
+        tmp_path / "garbage.png",
+        tmp_path / "black.png",
+        tmp_path / "white.tif",
+        tmp_path / "missing.pgm",
+        tmp_path / "frame_0000.png",
+    ]
+    r = run(
+        "measure", "--camera", str(tmp_path / "camera.json"), "--field", str(tmp_path / "field.json"), *map(str, images)
+    )
     assert r.returncode == 0  # at least one image was measured
     out = [json.loads(line) for line in r.stdout.splitlines()]
     assert [o["ok"] for o in out] == [False, False, False, False, True]

@@ -42,8 +42,16 @@ def dbat():
 def solution(request, dbat):
     project, control, report = dbat
     start = dataclasses.replace(project.camera, c_mm=7.3, x0_mm=0.0, y0_mm=0.0)
-    result = calibrate_camera(start, control, project.images, free=FREE, datum=Datum(control=control.ids),
-                              sigma_px=project.sigma_px, residual_space=request.param, reject_outliers=False)
+    result = calibrate_camera(
+        start,
+        control,
+        project.images,
+        free=FREE,
+        datum=Datum(control=control.ids),
+        sigma_px=project.sigma_px,
+        residual_space=request.param,
+        reject_outliers=False,
+    )
     return request.param, result, posecell_parameters(report, project.camera), report
 
 

@@ -17,9 +17,20 @@ from service.store.calibrations import CalibrationStore
 from service.store.formats import FormatError
 
 CAMERA = {  # DESIGN section 2
-    "model": "brown-fraser", "width": 1300, "height": 1030, "pixel_size_mm": [0.0067, 0.0067],
-    "c_mm": 12.0, "x0_mm": 0.0, "y0_mm": 0.0,
-    "K1": 0.0, "K2": 0.0, "K3": 0.0, "P1": 0.0, "P2": 0.0, "B1": 0.0, "B2": 0.0,
+    "model": "brown-fraser",
+    "width": 1300,
+    "height": 1030,
+    "pixel_size_mm": [0.0067, 0.0067],
+    "c_mm": 12.0,
+    "x0_mm": 0.0,
+    "y0_mm": 0.0,
+    "K1": 0.0,
+    "K2": 0.0,
+    "K3": 0.0,
+    "P1": 0.0,
+    "P2": 0.0,
+    "B1": 0.0,
+    "B2": 0.0,
 }
 FIELD = {  # DESIGN section 3
     "name": "floor-plate-A",
@@ -107,8 +118,9 @@ def test_field_refuses_bad_values_naming_the_target(key, value, needle):
 
 
 def test_field_accepts_a_whole_float_code_and_a_null_diameter():
-    field = formats.field_from_json(_with(_with(FIELD, ("targets", 1, "code"), 8.0), ("targets", 1, "diameter_mm"),
-                                          None))
+    field = formats.field_from_json(
+        _with(_with(FIELD, ("targets", 1, "code"), 8.0), ("targets", 1, "diameter_mm"), None)
+    )
     assert field.codes[1] == 8 and math.isnan(field.diameters_mm[1])
 
 
@@ -143,8 +155,12 @@ def test_handeye_refuses_a_nan_anywhere():
 def _rig(**camera1):
     T1 = np.eye(4)
     T1[0, 3] = 250.0
-    return {"model": "rig", "master": 0, "cameras": [CAMERA, {**CAMERA, **camera1}],
-            "T_master_camera": [EYE, T1.tolist()]}
+    return {
+        "model": "rig",
+        "master": 0,
+        "cameras": [CAMERA, {**CAMERA, **camera1}],
+        "T_master_camera": [EYE, T1.tolist()],
+    }
 
 
 def test_rig_cameras_are_checked_like_a_camera():
@@ -182,8 +198,10 @@ def test_a_result_file_says_not_determined_as_null_and_reads_back(tmp_path):
     from service.sim.scene import reference_camera
 
     cam = reference_camera().to_dict()
-    cam["calibration"] = {"targets": [{"id": "7", "n_rays": 1, "rms_px": float("nan"),
-                                       "sigma_mm": [float("nan")] * 3}], "sigma0_px": 0.03}
+    cam["calibration"] = {
+        "targets": [{"id": "7", "n_rays": 1, "rms_px": float("nan"), "sigma_mm": [float("nan")] * 3}],
+        "sigma0_px": 0.03,
+    }
     with pytest.raises(formats.FormatError, match="not standard JSON"):
         formats.write_json_atomic(tmp_path / "bad.json", cam)
     formats.write_json_atomic(tmp_path / "camera.json", formats.null_for_unknown(cam))

@@ -91,8 +91,9 @@ def test_roi_tracking_follows_a_motion_and_falls_back_when_targets_are_lost(cell
     for k in range(12):
         t_s = k * 0.01
         # a smooth sweep across the plate with a slow roll: ~4 px image motion per frame
-        T = reference_pose(view_angle_deg=80.0, distance_mm=1000.0, roll_deg=0.2 * k,
-                           look_at_mm=(-20.0 + 2.0 * k, 10.0, 0.0))
+        T = reference_pose(
+            view_angle_deg=80.0, distance_mm=1000.0, roll_deg=0.2 * k, look_at_mm=(-20.0 + 2.0 * k, 10.0, 0.0)
+        )
         settings = RenderSettings(lit=(k != 6))  # frame 6: the ring light did not fire
         frame = render_frame(camera, field, T, settings, rng)
         outcome = measurer.measure(frame.image, t_s=t_s)
@@ -106,9 +107,9 @@ def test_roi_tracking_follows_a_motion_and_falls_back_when_targets_are_lost(cell
         # coded targets stay in the ROI measurement (their windows must avoid the ring)
         assert outcome.result.n_coded >= 25, (k, outcome.mode, outcome.result.n_coded)
     assert modes[0] == "full"
-    assert modes[1:6] == ["roi"] * 5          # tracking after the first frame
-    assert modes[7] == "full"                 # the history was lost with the dark frame
-    assert modes[8:] == ["roi"] * 4           # and tracking resumes
+    assert modes[1:6] == ["roi"] * 5  # tracking after the first frame
+    assert modes[7] == "full"  # the history was lost with the dark frame
+    assert modes[8:] == ["roi"] * 4  # and tracking resumes
     assert max(errors) < 0.2
 
 

@@ -54,8 +54,7 @@ DISK_DIAMETER_MM = 9.9
 # would mask the targets round them as "ring pieces": no target here exceeds ~300 px.
 DETECT = DetectSettings(min_contrast_dn=40.0, min_area_px=20, max_area_px=1000)
 # The nominal camera ignores the lens's distortion (about 1 px rms): measure with that noise.
-NOMINAL_SETTINGS = MeasureSettings(detect=DETECT, code_family=AICON14, roi=False,
-                                   sigma_px=1.0, max_sigma0_px=2.5)
+NOMINAL_SETTINGS = MeasureSettings(detect=DETECT, code_family=AICON14, roi=False, sigma_px=1.0, max_sigma0_px=2.5)
 CAMERA_PARAMETERS = ("c_mm", "x0_mm", "y0_mm", "K1", "K2", "K3", "P1", "P2")
 CAMERA_SCALES = np.array([1.0, 0.1, 0.1, 1e-4, 1e-6, 1e-8, 1e-5, 1e-5])  # conditioning
 
@@ -78,11 +77,14 @@ def test_aicon_point_list_names_below_517_are_coded_targets_with_that_number():
     assert field.diameters_mm[0] == 9.9 and np.isnan(field.diameters_mm[2])
 
 
-@pytest.mark.parametrize("text, words", [
-    ("  2  1.0  2.0\n", "line 1"),
-    ("# only a comment\n", "no target rows"),
-    ("2 1 2 3\n2 4 5 6\n", "twice"),
-])
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("  2  1.0  2.0\n", "line 1"),
+        ("# only a comment\n", "no target rows"),
+        ("2 1 2 3\n2 4 5 6\n", "twice"),
+    ],
+)
 def test_malformed_aicon_point_list_is_one_clear_error(text, words):
     with pytest.raises(formats.FormatError, match=words):
         formats.field_from_aicon_txt(text, "panel.txt")
@@ -97,15 +99,19 @@ def test_aicon_family_is_the_micmac_14bit_code_with_its_ring_geometry():
     assert FAMILIES == {"posecell12": POSECELL12, "aicon14": AICON14}
     assert AICON14.code_words() == codes_micmac.code_words()
     assert (AICON14.n_bits, AICON14.ring_inner, AICON14.ring_outer) == (
-        codes_micmac.N_BITS, codes_micmac.RING_INNER, codes_micmac.RING_OUTER)
+        codes_micmac.N_BITS,
+        codes_micmac.RING_INNER,
+        codes_micmac.RING_OUTER,
+    )
     assert AICON14.n_codes == 516
 
 
 # -- 14-bit targets drawn with known codes and rolls ---------------------------
 
 
-def _draw_aicon_targets(codes: list[int], rng: np.random.Generator, radius_px: float = 8.0
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _draw_aicon_targets(
+    codes: list[int], rng: np.random.Generator, radius_px: float = 8.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """An 8-bit image of 14-bit targets on a grid, each seen at up to 60 deg (an affine view),
     with a random roll; blurred and noisy. Returns the image, the disk centres (N, 2) px and the
     image direction (N,) deg of each target's sector 0, counter-clockwise as displayed."""
@@ -130,7 +136,7 @@ def _draw_aicon_targets(codes: list[int], rng: np.random.Generator, radius_px: f
         sector = np.minimum((theta / (2 * np.pi / 14)).astype(int), 13)
         bright = (r <= 1.0) | ((r >= 2.0) & (r <= 3.0) & codes_micmac.bits_of(code)[sector])
         patch = bright.reshape(spacing, sub, spacing, sub).mean(axis=(1, 3))
-        image[v0:v0 + spacing, u0:u0 + spacing] = np.maximum(image[v0:v0 + spacing, u0:u0 + spacing], patch)
+        image[v0 : v0 + spacing, u0 : u0 + spacing] = np.maximum(image[v0 : v0 + spacing, u0 : u0 + spacing], patch)
         centres[i] = centre
         d = M @ np.array([np.cos(phi), np.sin(phi)])
         roll_deg[i] = np.degrees(np.arctan2(-d[1], d[0]))
@@ -178,8 +184,7 @@ def _views(frames: list[Frame]) -> list[tuple[list[str], np.ndarray, np.ndarray]
     for f in frames:
         if isinstance(f.result, PoseResult):
             used = [t for t in f.result.targets if t.used]
-            out.append(([t.id for t in used], np.array([t.uv for t in used]),
-                        np.asarray(f.result.T_field_camera)))
+            out.append(([t.id for t in used], np.array([t.uv for t in used]), np.asarray(f.result.T_field_camera)))
     return out
 
 
@@ -218,9 +223,10 @@ def fit_camera(field, views, camera: BrownFraser) -> BrownFraser:
     sparsity = lil_matrix((2 * len(p), k + 6 * len(views)), dtype=np.int8)
     sparsity[:, :k] = 1
     for i, j in enumerate(image):
-        sparsity[2 * i:2 * i + 2, k + 6 * j:k + 6 * j + 6] = 1
-    sol = least_squares(residuals, np.concatenate(z0), jac_sparsity=sparsity, x_scale="jac",
-                        loss="soft_l1", f_scale=1.0)
+        sparsity[2 * i : 2 * i + 2, k + 6 * j : k + 6 * j + 6] = 1
+    sol = least_squares(
+        residuals, np.concatenate(z0), jac_sparsity=sparsity, x_scale="jac", loss="soft_l1", f_scale=1.0
+    )
     assert sol.success, sol.message
     return camera_of(sol.x)
 
@@ -229,9 +235,12 @@ def fit_camera(field, views, camera: BrownFraser) -> BrownFraser:
 def panel():
     """Every image measured once with the nominal camera; cameras fitted on each half; poses."""
     data = shared_data(DATA)
-    field = formats.field_from_aicon_txt((data / POSITIONS).read_text(), POSITIONS,
-                                         coded_diameter_mm=DISK_DIAMETER_MM,
-                                         uncoded_diameter_mm=DISK_DIAMETER_MM)
+    field = formats.field_from_aicon_txt(
+        (data / POSITIONS).read_text(),
+        POSITIONS,
+        coded_diameter_mm=DISK_DIAMETER_MM,
+        uncoded_diameter_mm=DISK_DIAMETER_MM,
+    )
     measurer = FrameMeasurer(NOMINAL_CAMERA, field, NOMINAL_SETTINGS)
     frames = []
     for path in sorted((data / "images").glob("*_Scaled.tif")):
@@ -251,12 +260,12 @@ def panel():
     # other half, so the residuals do not flatter the fitted camera.
     half = {name: j % 2 for j, name in enumerate(f.name for f in frames)}
     ok = [f for f in frames if isinstance(f.result, PoseResult)]
-    cameras = {h: fit_camera(field, _views([f for f in ok if half[f.name] != h]), NOMINAL_CAMERA)
-               for h in (0, 1)}
+    cameras = {h: fit_camera(field, _views([f for f in ok if half[f.name] != h]), NOMINAL_CAMERA) for h in (0, 1)}
     refit = {}  # every identified target, also those the nominal camera's residuals had rejected
     for f in ok:
-        refit[f.name] = resect_observations(cameras[half[f.name]], field, [t.id for t in f.result.targets],
-                                            np.array([t.uv for t in f.result.targets]))
+        refit[f.name] = resect_observations(
+            cameras[half[f.name]], field, [t.id for t in f.result.targets], np.array([t.uv for t in f.result.targets])
+        )
     return field, frames, cameras, half, refit
 
 
@@ -340,9 +349,28 @@ def test_measure_verb_reads_an_aicon_panel(tmp_path, capsys):
     data = shared_data(DATA)
     formats.write_camera(tmp_path / "camera.json", NOMINAL_CAMERA)
     image = data / "images" / "043_0019_Scaled.tif"
-    code = cli.main(["measure", "--camera", str(tmp_path / "camera.json"), "--field", str(data / POSITIONS),
-                     "--code-family", "aicon14", "--min-contrast-dn", "40", "--min-area-px", "20",
-                     "--max-area-px", "1000", "--sigma-px", "1", "--max-sigma0-px", "2.5", str(image)])
+    code = cli.main(
+        [
+            "measure",
+            "--camera",
+            str(tmp_path / "camera.json"),
+            "--field",
+            str(data / POSITIONS),
+            "--code-family",
+            "aicon14",
+            "--min-contrast-dn",
+            "40",
+            "--min-area-px",
+            "20",
+            "--max-area-px",
+            "1000",
+            "--sigma-px",
+            "1",
+            "--max-sigma0-px",
+            "2.5",
+            str(image),
+        ]
+    )
     captured = capsys.readouterr()
     assert code == 0, captured.err
     out = json.loads(captured.out)
@@ -363,9 +391,24 @@ def camera_calibrated_by_posecell(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:  # the summary line, without the test's capsys
         lines: list[str] = []
         mp.setattr(cli, "_print_json", lambda obj: lines.append(json.dumps(obj)))
-        code = cli.main(["calibrate", "camera", "--field", str(data / POSITIONS), "--c-mm", "24",
-                         "--pixel-size-mm", str(PIXEL_MM), "--code-family", "aicon14", "-q", "-o", str(out),
-                         str(data / "images")])
+        code = cli.main(
+            [
+                "calibrate",
+                "camera",
+                "--field",
+                str(data / POSITIONS),
+                "--c-mm",
+                "24",
+                "--pixel-size-mm",
+                str(PIXEL_MM),
+                "--code-family",
+                "aicon14",
+                "-q",
+                "-o",
+                str(out),
+                str(data / "images"),
+            ]
+        )
     assert code == 0, lines
     return out, json.loads(lines[-1])
 
@@ -379,7 +422,8 @@ def test_real_panel_camera_is_calibrated_with_default_detection(camera_calibrate
 
 
 def test_real_panel_is_measured_with_default_settings_once_posecell_calibrated_the_camera(
-        camera_calibrated_by_posecell, capsys):
+    camera_calibrated_by_posecell, capsys
+):
     camera_json, _ = camera_calibrated_by_posecell
     data = shared_data(DATA)
     field = formats.read_field(data / POSITIONS)
@@ -398,8 +442,18 @@ def test_real_panel_is_measured_with_default_settings_once_posecell_calibrated_t
         mp.setattr(pipeline, "read_codes", spy)
         for path in images:  # one verb per image, so that the readings are known per image
             current[0] = path.name
-            cli.main(["measure", "--camera", str(camera_json), "--field", str(data / POSITIONS),
-                      "--code-family", "aicon14", str(path)])
+            cli.main(
+                [
+                    "measure",
+                    "--camera",
+                    str(camera_json),
+                    "--field",
+                    str(data / POSITIONS),
+                    "--code-family",
+                    "aicon14",
+                    str(path),
+                ]
+            )
             lines.append(json.loads(capsys.readouterr().out))
     rejected = 0
     for path, out in zip(images, lines, strict=True):
@@ -428,8 +482,18 @@ def test_real_panel_is_measured_with_default_settings_once_posecell_calibrated_t
 def test_an_uncalibrated_camera_fails_saying_so_and_naming_the_verb(tmp_path, capsys):
     data = shared_data(DATA)
     formats.write_camera(tmp_path / "nominal.json", NOMINAL_CAMERA)
-    code = cli.main(["measure", "--camera", str(tmp_path / "nominal.json"), "--field", str(data / POSITIONS),
-                     "--code-family", "aicon14", str(data / "images" / "043_0019_Scaled.tif")])
+    code = cli.main(
+        [
+            "measure",
+            "--camera",
+            str(tmp_path / "nominal.json"),
+            "--field",
+            str(data / POSITIONS),
+            "--code-family",
+            "aicon14",
+            str(data / "images" / "043_0019_Scaled.tif"),
+        ]
+    )
     captured = capsys.readouterr()
     assert code == 1 and not json.loads(captured.out)["ok"]
     # the lens's distortion (~1 px) is what fails the 0.5 px limit: the sentence says so and what to run

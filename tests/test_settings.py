@@ -164,6 +164,8 @@ def test_a_runtime_file_that_does_not_validate_is_set_aside_and_not_applied(tmp_
 
 def test_no_runtime_file_leaves_the_settings_as_they_are(tmp_path):
     events = Events()
-    assert apply_runtime_file(Settings(state_dir=tmp_path), events).model_dump() == Settings(
-        state_dir=tmp_path).model_dump()
+    assert (
+        apply_runtime_file(Settings(state_dir=tmp_path), events).model_dump()
+        == Settings(state_dir=tmp_path).model_dump()
+    )
     assert events.events == []

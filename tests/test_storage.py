@@ -27,11 +27,19 @@ T0 = datetime(2025, 3, 1, 12, 0, 0, tzinfo=UTC)
 def result(n: int, *, ok: bool = True, camera: str = "cam0", t_wall: datetime | None = None, **extra):
     r = {"ok": ok, "n": n, "camera": camera}
     if ok:
-        r.update({
-            "T_field_camera": [[1.0, 0.0, 0.0, 100.0 + n], [0.0, 1.0, 0.0, 2.0 * n], [0.0, 0.0, 1.0, 1500.0],
-                               [0.0, 0.0, 0.0, 1.0]],
-            "rms_px": 0.05, "n_coded": 30, "n_uncoded": 200,
-        })
+        r.update(
+            {
+                "T_field_camera": [
+                    [1.0, 0.0, 0.0, 100.0 + n],
+                    [0.0, 1.0, 0.0, 2.0 * n],
+                    [0.0, 0.0, 1.0, 1500.0],
+                    [0.0, 0.0, 0.0, 1.0],
+                ],
+                "rms_px": 0.05,
+                "n_coded": 30,
+                "n_uncoded": 200,
+            }
+        )
     else:
         r.update({"reason": "too_few_targets", "message": "only 3 targets, at least 6 needed"})
     if t_wall is not None:
@@ -130,10 +138,15 @@ def test_columns_are_taken_from_the_result(open_store):
     store = open_store()
     T_base_flange_measured = np.eye(4)
     T_base_flange_measured[:3, 3] = [400.0, -50.0, 300.0]
-    seq = store.add_measurement(result(
-        1, T_base_flange_measured=T_base_flange_measured, t_host_ns=123_456_789,
-        deviation={"position_mm": 0.25, "angle_deg": 0.02}, sigma_position_mm=np.array([0.01, 0.01, 0.03]),
-    ))
+    seq = store.add_measurement(
+        result(
+            1,
+            T_base_flange_measured=T_base_flange_measured,
+            t_host_ns=123_456_789,
+            deviation={"position_mm": 0.25, "angle_deg": 0.02},
+            sigma_position_mm=np.array([0.01, 0.01, 0.03]),
+        )
+    )
     assert store.wait_written(seq, timeout_s=5.0)
     (row,) = store.measurements()
     assert row["pose_of"] == "base_flange_measured"
@@ -215,8 +228,14 @@ KILL_CHILD = textwrap.dedent("""
 def test_kill_9_mid_stream_loses_no_acknowledged_row_and_leaves_a_sound_database(tmp_path, synchronous):
     db = tmp_path / "m.db"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    proc = subprocess.Popen([sys.executable, "-c", KILL_CHILD, str(db), synchronous], cwd=REPO, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", KILL_CHILD, str(db), synchronous],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
     try:

@@ -111,7 +111,11 @@ def test_targets_are_white_on_a_black_background_covering_the_sheet(sheet):
     background = root.find(SVG + "rect")
     assert background.get("fill") == "#000000"
     assert [float(background.get(k)) for k in ("x", "y", "width", "height")] == [
-        0.0, 0.0, options.width_mm, options.height_mm]
+        0.0,
+        0.0,
+        options.width_mm,
+        options.height_mm,
+    ]
     group = root.find(f"{SVG}g[@id='targets']")
     assert group.get("fill") == "#ffffff"
     # The white group is drawn after the background, and every target sits inside it.
@@ -198,8 +202,12 @@ def test_any_view_of_a_third_of_the_sheet_holds_at_least_four_whole_coded_target
     counts = []
     for x0 in np.linspace(-options.width_mm / 2, options.width_mm / 2 - w, 25):
         for y0 in np.linspace(-options.height_mm / 2, options.height_mm / 2 - h, 25):
-            inside = ((coded[:, 0] - ring >= x0) & (coded[:, 0] + ring <= x0 + w)
-                      & (coded[:, 1] - ring >= y0) & (coded[:, 1] + ring <= y0 + h))
+            inside = (
+                (coded[:, 0] - ring >= x0)
+                & (coded[:, 0] + ring <= x0 + w)
+                & (coded[:, 1] - ring >= y0)
+                & (coded[:, 1] + ring <= y0 + h)
+            )
             counts.append(int(inside.sum()))
     assert 4 <= min(counts) <= 12  # at least four everywhere; spread, not bunched
 
@@ -252,8 +260,11 @@ def test_layout_is_deterministic_and_a_seed_jitters_only_the_uncoded_targets():
 
 
 def test_options_choose_codes_counts_and_sizes():
-    svg, field = make_sheet(SheetOptions(width_mm=600, height_mm=450, n_coded=12, n_uncoded=40,
-                                         first_code=100, coded_diameter_mm=8.0, margin_mm=25.0))
+    svg, field = make_sheet(
+        SheetOptions(
+            width_mm=600, height_mm=450, n_coded=12, n_uncoded=40, first_code=100, coded_diameter_mm=8.0, margin_mm=25.0
+        )
+    )
     assert sorted(field.codes[field.is_coded].tolist()) == list(range(100, 112))
     assert len(field) == 52 and np.all(field.diameters_mm[field.is_coded] == 8.0)
     assert 'width="600mm"' in svg and 'height="450mm"' in svg

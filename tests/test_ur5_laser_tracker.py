@@ -46,8 +46,10 @@ def test_ur5_commanded_tcp_is_nominal_fk_with_a_tool_offset(ur5):
     nominal, grid, random, tool = ur5
     p_tool = np.array([tool.parameter(n)[0] for n in ("tool_x", "tool_y", "tool_z")])
     fit_random = np.linalg.norm(tool.predict(random[0]) - random[1], axis=1)
-    print(f"\nUR5 TCP offset in the flange: {np.round(p_tool, 4).tolist()} mm, "
-          f"fit RMS {tool.rms_after_mm:.4f} mm (grid), max {fit_random.max():.4f} mm (random)")
+    print(
+        f"\nUR5 TCP offset in the flange: {np.round(p_tool, 4).tolist()} mm, "
+        f"fit RMS {tool.rms_after_mm:.4f} mm (grid), max {fit_random.max():.4f} mm (random)"
+    )
     # the file rounds and the controller's kinematics are not quite UR's published DH: well under 0.1 mm
     assert tool.rms_after_mm < 0.05
     assert fit_random.max() < 0.1
@@ -87,10 +89,24 @@ def test_calibrate_robot_verb_on_the_ur5_data(tmp_path):
 
     root = shared_data("ur5-laser-tracker")
     posecell = Path(sys.executable).with_name("posecell")
-    r = subprocess.run([str(posecell), "calibrate", "robot", "--robot", "ur5",
-                        "--samples", str(root / "3D_UR5_uncalibrated_grid_cleaned.csv"),
-                        "--test", str(root / "3D_UR5_uncalibrated_random_cleaned.csv"), "-o", str(tmp_path / "m.json")],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [
+            str(posecell),
+            "calibrate",
+            "robot",
+            "--robot",
+            "ur5",
+            "--samples",
+            str(root / "3D_UR5_uncalibrated_grid_cleaned.csv"),
+            "--test",
+            str(root / "3D_UR5_uncalibrated_random_cleaned.csv"),
+            "-o",
+            str(tmp_path / "m.json"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr
     out = json.loads((tmp_path / "m.json").read_text())
     test = out["test"]

@@ -35,8 +35,13 @@ MB = 1_000_000
 @pytest.fixture(scope="module")
 def edge(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
     settings = load_settings(
-        None, state_dir=str(tmp_path_factory.mktemp("edge-state")), server__port=free_port(), server__token=TOKEN,
-        server__cors_origins=[TRUSTED_ORIGIN], server__timeout_header_s=TIMEOUT_S, server__timeout_body_s=TIMEOUT_S,
+        None,
+        state_dir=str(tmp_path_factory.mktemp("edge-state")),
+        server__port=free_port(),
+        server__token=TOKEN,
+        server__cors_origins=[TRUSTED_ORIGIN],
+        server__timeout_header_s=TIMEOUT_S,
+        server__timeout_body_s=TIMEOUT_S,
         server__timeout_keep_alive_s=TIMEOUT_S,
     )
     settings.cameras[0].frame_rate_hz = 10.0
@@ -61,8 +66,11 @@ class Raw:
         self.sock.sendall(data)
 
     def head(self, method: str, path: str, headers: dict[str, str]) -> bytes:
-        lines = [f"{method} {path} HTTP/1.1", f"Host: 127.0.0.1:{self.port}",
-                 *(f"{k}: {v}" for k, v in headers.items())]
+        lines = [
+            f"{method} {path} HTTP/1.1",
+            f"Host: 127.0.0.1:{self.port}",
+            *(f"{k}: {v}" for k, v in headers.items()),
+        ]
         return ("\r\n".join(lines) + "\r\n\r\n").encode()
 
     def response(self, timeout_s: float) -> tuple[int, dict[str, str], bytes]:
@@ -98,8 +106,9 @@ class Raw:
             self.received += chunk
         return False
 
-    def upload(self, head: bytes, n_bytes: int, chunked: bool,
-               timeout_s: float = 20.0) -> tuple[int | None, int, float]:
+    def upload(
+        self, head: bytes, n_bytes: int, chunked: bool, timeout_s: float = 20.0
+    ) -> tuple[int | None, int, float]:
         """Send a request with an n_bytes body while watching for an early answer.
 
         Returns (status or None, bytes handed to the kernel before the answer or the hang-up, seconds).
@@ -119,8 +128,9 @@ class Raw:
                     pending = b"%x\r\n%s\r\n" % (n, piece[:n]) if chunked else piece[:n]
                     if chunked and queued == n_bytes:
                         pending += b"0\r\n\r\n"
-                readable, writable, _ = select.select([self.sock], [self.sock] if pending and can_write else [], [],
-                                                      0.5)
+                readable, writable, _ = select.select(
+                    [self.sock], [self.sock] if pending and can_write else [], [], 0.5
+                )
                 if readable:
                     try:
                         chunk = self.sock.recv(65536)
@@ -154,7 +164,7 @@ def _parse(data: bytes, eof: bool = False) -> tuple[int, dict[str, str], bytes] 
     lines = data[:end].decode("latin-1").split("\r\n")
     status = int(lines[0].split()[1])
     headers = {k.strip().lower(): v.strip() for k, _, v in (line.partition(":") for line in lines[1:])}
-    body = data[end + 4:]
+    body = data[end + 4 :]
     if "content-length" in headers:
         n = int(headers["content-length"])
         return (status, headers, body[:n]) if len(body) >= n else None
@@ -167,8 +177,13 @@ def _raw(live: LiveServer) -> Raw:
 
 # -- defect 3: the token is checked before the body is read; bodies are capped --------------------------------
 
-STATE_CHANGING = [("PUT", "/calibration/field"), ("POST", "/calibration/camera/solve"), ("PUT", "/config"),
-                  ("POST", "/measure"), ("DELETE", "/calibration/handeye/session")]
+STATE_CHANGING = [
+    ("PUT", "/calibration/field"),
+    ("POST", "/calibration/camera/solve"),
+    ("PUT", "/config"),
+    ("POST", "/measure"),
+    ("DELETE", "/calibration/handeye/session"),
+]
 
 
 @pytest.mark.parametrize(("method", "path"), STATE_CHANGING)
@@ -204,8 +219,9 @@ def test_health_stays_fast_while_unauthenticated_50_mb_uploads_are_refused_unrea
     def upload() -> None:
         raw = _raw(edge)
         try:
-            head = raw.head("PUT", "/calibration/field", {"Content-Type": "application/json",
-                                                          "Content-Length": str(50 * MB)})
+            head = raw.head(
+                "PUT", "/calibration/field", {"Content-Type": "application/json", "Content-Length": str(50 * MB)}
+            )
             results.append(raw.upload(head, 50 * MB, chunked=False))
         finally:
             raw.close()
@@ -236,9 +252,17 @@ def test_a_declared_body_over_the_limit_is_refused_with_413_before_it_is_sent(ed
     limit = edge.settings.server.max_body_bytes
     raw = _raw(edge)
     try:
-        raw.send(raw.head("PUT", "/calibration/field", {"Authorization": f"Bearer {TOKEN}",
-                                                        "Content-Type": "application/json",
-                                                        "Content-Length": str(limit + 1)}))
+        raw.send(
+            raw.head(
+                "PUT",
+                "/calibration/field",
+                {
+                    "Authorization": f"Bearer {TOKEN}",
+                    "Content-Type": "application/json",
+                    "Content-Length": str(limit + 1),
+                },
+            )
+        )
         status, headers, body = raw.response(timeout_s=2.0)
     finally:
         raw.close()
@@ -251,9 +275,11 @@ def test_a_chunked_body_is_cut_with_413_at_the_limit(edge):
     limit = edge.settings.server.max_body_bytes
     raw = _raw(edge)
     try:
-        head = raw.head("PUT", "/calibration/field", {"Authorization": f"Bearer {TOKEN}",
-                                                      "Content-Type": "application/json",
-                                                      "Transfer-Encoding": "chunked"})
+        head = raw.head(
+            "PUT",
+            "/calibration/field",
+            {"Authorization": f"Bearer {TOKEN}", "Content-Type": "application/json", "Transfer-Encoding": "chunked"},
+        )
         status, sent, _ = raw.upload(head, 3 * limit, chunked=True)
     finally:
         raw.close()
@@ -269,8 +295,13 @@ def test_normal_uploads_still_work_and_a_realistic_large_body_passes_the_cap(edg
         assert r.status_code == 200 and r.json()["ok"] is True, r.text
         # 50 images x 500 observations, pretty-printed (3.5 MB): within the cap; the route then refuses
         # the unknown target ids, which shows that the body got through
-        images = [{"name": f"img{k:03d}", "points": [{"id": f"X{j:05d}", "uv": [1234.567891234, 987.654321987]}
-                                                    for j in range(500)]} for k in range(50)]
+        images = [
+            {
+                "name": f"img{k:03d}",
+                "points": [{"id": f"X{j:05d}", "uv": [1234.567891234, 987.654321987]} for j in range(500)],
+            }
+            for k in range(50)
+        ]
         body = json.dumps({"images": images}, indent=2).encode()
         assert 3 * MB < len(body) < edge.settings.server.max_body_bytes
         r = c.post("/calibration/camera/solve", content=body, headers={"Content-Type": "application/json"})
@@ -323,8 +354,14 @@ def test_a_slowloris_header_is_cut_off_at_the_header_timeout_however_it_trickles
 def test_a_stalled_body_is_cut_off_at_the_body_timeout(edge):
     raw = _raw(edge)
     try:
-        raw.send(raw.head("PUT", "/config", {"Authorization": f"Bearer {TOKEN}", "Content-Type": "application/json",
-                                             "Content-Length": "100"}) + b'{"processing": ')
+        raw.send(
+            raw.head(
+                "PUT",
+                "/config",
+                {"Authorization": f"Bearer {TOKEN}", "Content-Type": "application/json", "Content-Length": "100"},
+            )
+            + b'{"processing": '
+        )
         t0 = time.monotonic()
         assert raw.closed_by_server(timeout_s=TIMEOUT_S + 3.0)
         assert time.monotonic() - t0 < TIMEOUT_S + 2.0
@@ -359,9 +396,17 @@ def test_an_oversized_request_header_is_refused_with_431(edge):
 def test_uvicorn_gets_every_limit_from_the_settings(edge):
     from api.serve import uvicorn_config
 
-    s = load_settings(None, server__limit_concurrency=7, server__backlog=64, server__timeout_keep_alive_s=3,
-                      server__timeout_graceful_shutdown_s=4, server__ws_ping_interval_s=5,
-                      server__ws_ping_timeout_s=6, server__max_header_bytes=4096, server__ws_max_message_bytes=2048)
+    s = load_settings(
+        None,
+        server__limit_concurrency=7,
+        server__backlog=64,
+        server__timeout_keep_alive_s=3,
+        server__timeout_graceful_shutdown_s=4,
+        server__ws_ping_interval_s=5,
+        server__ws_ping_timeout_s=6,
+        server__max_header_bytes=4096,
+        server__ws_max_message_bytes=2048,
+    )
     cfg = uvicorn_config(edge.app, s)
     assert (cfg.limit_concurrency, cfg.backlog, cfg.timeout_keep_alive, cfg.timeout_graceful_shutdown) == (7, 64, 3, 4)
     assert (cfg.ws_ping_interval, cfg.ws_ping_timeout, cfg.ws_max_size) == (5, 6, 2048)
@@ -369,8 +414,9 @@ def test_uvicorn_gets_every_limit_from_the_settings(edge):
 
 
 def test_connections_beyond_the_concurrency_limit_get_503_not_a_hang(tmp_path):
-    settings = load_settings(None, state_dir=str(tmp_path), server__port=free_port(), server__token=TOKEN,
-                             server__limit_concurrency=4)
+    settings = load_settings(
+        None, state_dir=str(tmp_path), server__port=free_port(), server__token=TOKEN, server__limit_concurrency=4
+    )
     servers = run_server(settings)
     live = next(servers)
     socks = []
@@ -413,8 +459,10 @@ def test_a_foreign_host_header_is_refused_over_http_and_websocket(edge, host):
     assert r.status_code == 400 and r.json()["reason"] == "host_not_allowed"
     raw = _raw(edge)
     try:  # a WebSocket handshake written by hand: clients put their own Host in
-        raw.send(f"GET /ws/poses HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-                 "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+        raw.send(
+            f"GET /ws/poses HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n".encode()
+        )
         status, _, body = raw.response(timeout_s=5.0)
     finally:
         raw.close()

@@ -25,22 +25,30 @@ def rig_cell(tmp_path_factory):
     settings.sim.program = "hold"
     settings.cameras = [
         CameraConfig(name="cam0", frame_rate_hz=8.0),
-        CameraConfig(name="cam1", frame_rate_hz=8.0,
-                     options={"T_master_camera": T_MASTER_CAM1.tolist(), "seed": 7, "serial": "SIM-0002"}),
+        CameraConfig(
+            name="cam1",
+            frame_rate_hz=8.0,
+            options={"T_master_camera": T_MASTER_CAM1.tolist(), "seed": 7, "serial": "SIM-0002"},
+        ),
     ]
     yield from run_server(settings)
 
 
 def test_rig_pose_by_forward_intersection_matches_the_truth(rig_cell):
     live = rig_cell
-    live.wait_for(lambda h: h["status"] == "ok" and h["processing"]["ok"] >= 4, timeout_s=180.0,
-                  what="both cameras measuring")
+    live.wait_for(
+        lambda h: h["status"] == "ok" and h["processing"]["ok"] >= 4, timeout_s=180.0, what="both cameras measuring"
+    )
     cell = live.worker.cell.cell
     with live.client() as c:
         m = c.post("/measure", json={"timeout_s": 5}).json()
         assert m["camera"] in ("cam0", "cam1")  # no rig calibration yet: single cameras answer
-        rig = {"model": "rig", "master": 0, "cameras": [cell.camera.to_dict(), cell.camera.to_dict()],
-               "T_master_camera": [np.eye(4).tolist(), T_MASTER_CAM1.tolist()]}
+        rig = {
+            "model": "rig",
+            "master": 0,
+            "cameras": [cell.camera.to_dict(), cell.camera.to_dict()],
+            "T_master_camera": [np.eye(4).tolist(), T_MASTER_CAM1.tolist()],
+        }
         r = c.put("/calibration/rig", json=rig)
         assert r.status_code == 200, r.text
         deadline = time.monotonic() + 30

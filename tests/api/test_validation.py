@@ -38,27 +38,30 @@ def _config_state(live: Any, c: Any) -> tuple[Any, ...]:
     return c.get("/config").json(), _runtime_file(live), channel.settings, live.worker.settings.processing
 
 
-@pytest.mark.parametrize("text", [
-    '{"cameras": {"cam0": {"exposure_us": Infinity}}}',
-    '{"cameras": {"cam0": {"exposure_us": NaN}}}',
-    '{"cameras": {"cam0": {"exposure_us": 1e300}}}',
-    '{"cameras": {"cam0": {"gain_db": NaN}}}',
-    '{"cameras": {"cam0": {"gain_db": -Infinity}}}',
-    '{"cameras": {"cam0": {"gain_db": 500}}}',
-    '{"cameras": {"cam0": {"frame_rate_hz": 1e-9}}}',
-    '{"cameras": {"cam0": {"roi": [-1, 0, 64, 64]}}}',
-    '{"cameras": {"cam0": {"roi": [0, 0, 0, 64]}}}',
-    '{"cameras": {"cam0": {"roi": [0, 0, 70000, 64]}}}',
-    '{"cameras": {"cam0": {"strobe": {"delay_us": 1e7}}}}',
-    '{"cameras": {"cam0": {"strobe": {"duration_us": Infinity}}}}',
-    '{"cameras": {"cam0": {"transport_latency_s": 5}}}',
-    '{"processing": {"sigma_px": NaN}}',
-    '{"processing": {"max_sigma0_px": 1e9}}',
-    '{"processing": {"min_contrast_dn": 1e6}}',
-    '{"processing": {"max_area_px": 1000000000000}}',
-    '{"processing": {"min_targets": 100000000}}',
-    '{"processing": {"max_area_px": 1%s}}' % ("0" * 400),  # an integer beyond any float
-])
+@pytest.mark.parametrize(
+    "text",
+    [
+        '{"cameras": {"cam0": {"exposure_us": Infinity}}}',
+        '{"cameras": {"cam0": {"exposure_us": NaN}}}',
+        '{"cameras": {"cam0": {"exposure_us": 1e300}}}',
+        '{"cameras": {"cam0": {"gain_db": NaN}}}',
+        '{"cameras": {"cam0": {"gain_db": -Infinity}}}',
+        '{"cameras": {"cam0": {"gain_db": 500}}}',
+        '{"cameras": {"cam0": {"frame_rate_hz": 1e-9}}}',
+        '{"cameras": {"cam0": {"roi": [-1, 0, 64, 64]}}}',
+        '{"cameras": {"cam0": {"roi": [0, 0, 0, 64]}}}',
+        '{"cameras": {"cam0": {"roi": [0, 0, 70000, 64]}}}',
+        '{"cameras": {"cam0": {"strobe": {"delay_us": 1e7}}}}',
+        '{"cameras": {"cam0": {"strobe": {"duration_us": Infinity}}}}',
+        '{"cameras": {"cam0": {"transport_latency_s": 5}}}',
+        '{"processing": {"sigma_px": NaN}}',
+        '{"processing": {"max_sigma0_px": 1e9}}',
+        '{"processing": {"min_contrast_dn": 1e6}}',
+        '{"processing": {"max_area_px": 1000000000000}}',
+        '{"processing": {"min_targets": 100000000}}',
+        '{"processing": {"max_area_px": 1%s}}' % ("0" * 400),  # an integer beyond any float
+    ],
+)
 def test_config_refuses_non_finite_and_out_of_range_values_and_changes_nothing(live, text):
     with live.client() as c:
         # a saved runtime file exists, so that "unchanged" means the same bytes, not "still absent"
@@ -71,8 +74,11 @@ def test_config_refuses_non_finite_and_out_of_range_values_and_changes_nothing(l
 
 
 def _calibration_state(live: Any, c: Any, kind: str) -> tuple[Any, ...]:
-    return (c.get(f"/calibration/{kind}").json(), c.get(f"/calibration/{kind}/versions").json(),
-            live.worker.calibration.generation)
+    return (
+        c.get(f"/calibration/{kind}").json(),
+        c.get(f"/calibration/{kind}/versions").json(),
+        live.worker.calibration.generation,
+    )
 
 
 def _with(data: dict[str, Any], path: tuple[Any, ...], value: Any) -> dict[str, Any]:
@@ -87,26 +93,29 @@ def _with(data: dict[str, Any], path: tuple[Any, ...], value: Any) -> dict[str, 
 NAN, INF = float("nan"), float("inf")
 
 
-@pytest.mark.parametrize(("kind", "path", "value"), [
-    ("camera", ("c_mm",), 1e308),
-    ("camera", ("c_mm",), NAN),
-    ("camera", ("K1",), [1, 2]),
-    ("camera", ("K1",), NAN),
-    ("camera", ("K2",), 1e300),
-    ("camera", ("width",), 1300.5),
-    ("camera", ("width",), 10**9),
-    ("camera", ("pixel_size_mm",), [0.0067, INF]),
-    ("camera", ("comment",), NAN),  # readers ignore unknown keys, but they are stored: JSON has no NaN
-    ("field", ("targets", 0, "code"), "seven"),
-    ("field", ("targets", 0, "code"), 7.5),
-    ("field", ("targets", 0, "diameter_mm"), [1]),
-    ("field", ("targets", 0, "diameter_mm"), NAN),
-    ("field", ("targets", 0, "diameter_mm"), 1e300),
-    ("field", ("targets", 0, "xyz"), [1e300, 0.0, 0.0]),
-    ("field", ("targets", 0, "code"), 10**400),
-    ("handeye", ("T_flange_camera", 0, 3), 1e300),
-    ("handeye", ("T_base_field", 0, 3), "12.5"),
-])
+@pytest.mark.parametrize(
+    ("kind", "path", "value"),
+    [
+        ("camera", ("c_mm",), 1e308),
+        ("camera", ("c_mm",), NAN),
+        ("camera", ("K1",), [1, 2]),
+        ("camera", ("K1",), NAN),
+        ("camera", ("K2",), 1e300),
+        ("camera", ("width",), 1300.5),
+        ("camera", ("width",), 10**9),
+        ("camera", ("pixel_size_mm",), [0.0067, INF]),
+        ("camera", ("comment",), NAN),  # readers ignore unknown keys, but they are stored: JSON has no NaN
+        ("field", ("targets", 0, "code"), "seven"),
+        ("field", ("targets", 0, "code"), 7.5),
+        ("field", ("targets", 0, "diameter_mm"), [1]),
+        ("field", ("targets", 0, "diameter_mm"), NAN),
+        ("field", ("targets", 0, "diameter_mm"), 1e300),
+        ("field", ("targets", 0, "xyz"), [1e300, 0.0, 0.0]),
+        ("field", ("targets", 0, "code"), 10**400),
+        ("handeye", ("T_flange_camera", 0, 3), 1e300),
+        ("handeye", ("T_base_field", 0, 3), "12.5"),
+    ],
+)
 def test_calibration_upload_refuses_bad_values_and_stores_nothing(live, kind, path, value):
     with live.client() as c:
         before = _calibration_state(live, c, kind)
@@ -132,22 +141,26 @@ def test_self_calibration_refuses_non_finite_or_absurd_pixel_coordinates(live, u
         ids = [t["id"] for t in c.get("/calibration/field").json()["targets"][:6]]
         points = ", ".join(f'{{"id": "{i}", "uv": [{u}, 100.0]}}' for i in ids)
         images = ", ".join(f'{{"name": "im{k}", "points": [{points}]}}' for k in range(4))
-        r = c.post("/calibration/camera/solve", params={"apply": "true"}, content=f'{{"images": [{images}]}}',
-                   headers=JSON)
+        r = c.post(
+            "/calibration/camera/solve", params={"apply": "true"}, content=f'{{"images": [{images}]}}', headers=JSON
+        )
         _assert_bad_input(r)
         assert "uv" in r.json()["message"]
         assert _calibration_state(live, c, "camera") == before
 
 
-@pytest.mark.parametrize(("path", "params"), [
-    ("/measurements", {"offset": 2**63}),
-    ("/measurements", {"offset": 10**30}),
-    ("/measurements", {"from": "2025-01-02T03:04:05"}),
-    ("/measurements", {"to": "2025-01-02T03:04:05"}),
-    ("/events", {"from": "2025-01-02T03:04:05"}),
-    ("/events", {"to": "2025-01-02"}),
-    ("/events", {"to": "9999-12-31T23:59:59-01:00"}),  # after 9999 in UTC
-])
+@pytest.mark.parametrize(
+    ("path", "params"),
+    [
+        ("/measurements", {"offset": 2**63}),
+        ("/measurements", {"offset": 10**30}),
+        ("/measurements", {"from": "2025-01-02T03:04:05"}),
+        ("/measurements", {"to": "2025-01-02T03:04:05"}),
+        ("/events", {"from": "2025-01-02T03:04:05"}),
+        ("/events", {"to": "2025-01-02"}),
+        ("/events", {"to": "9999-12-31T23:59:59-01:00"}),  # after 9999 in UTC
+    ],
+)
 def test_history_refuses_huge_offsets_and_times_without_a_time_zone(live, path, params):
     with live.client() as c:
         r = c.get(path, params=params)

@@ -84,8 +84,13 @@ def _all_codes_field(spacing_mm: float = 36.0, diameter_mm: float = CODED_DIAMET
     i, j = (a.ravel() for a in np.meshgrid(k, k))
     xy = spacing_mm * np.stack([i + 0.5 * (j % 2), j * np.sqrt(3) / 2], 1)
     xy = xy[np.argsort(np.hypot(*xy.T), kind="stable")[:n]]
-    return Field("all-codes", tuple(f"C{c}" for c in range(1, n + 1)), np.c_[xy, np.zeros(n)],
-                 np.arange(1, n + 1), np.full(n, diameter_mm))
+    return Field(
+        "all-codes",
+        tuple(f"C{c}" for c in range(1, n + 1)),
+        np.c_[xy, np.zeros(n)],
+        np.arange(1, n + 1),
+        np.full(n, diameter_mm),
+    )
 
 
 def _tilted_normals(field: Field, T_field_camera, view_deg, rng) -> np.ndarray:
@@ -128,8 +133,7 @@ def _contour_ellipses(image, uv_guess, threshold_dn):
     out = []
     for uv in uv_guess:
         k = 1 + int(np.argmin(np.linalg.norm(centroids[1:] - uv, axis=1)))
-        contours, _ = cv2.findContours((labels == k).astype(np.uint8), cv2.RETR_EXTERNAL,
-                                       cv2.CHAIN_APPROX_NONE)
+        contours, _ = cv2.findContours((labels == k).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         (cu, cv), (w, h), ang = cv2.fitEllipse(max(contours, key=len))
         out.append((cu, cv, w / 2, h / 2, np.radians(ang)))
     return np.array(out)
@@ -142,8 +146,7 @@ def _angle_diff_deg(a, b):
 def _render_tilted(field, distance_mm, view_deg, rng, settings=RenderSettings()):
     """A head-on camera with random roll; each target tilted by its own ``view_deg`` (N,) deg."""
     camera = reference_camera()
-    T = reference_pose(view_angle_deg=90.0, distance_mm=distance_mm,
-                       roll_deg=rng.uniform(-180, 180))
+    T = reference_pose(view_angle_deg=90.0, distance_mm=distance_mm, roll_deg=rng.uniform(-180, 180))
     normals = _tilted_normals(field, T, view_deg, rng)
     frame = render_frame(camera, field, T, settings, rng=rng, normals_field=normals)
     rows = field.indices_of(list(frame.ids))[frame.fully_visible]
@@ -184,8 +187,7 @@ def test_decoding_holds_for_disks_from_8_to_40_px_at_60_deg(diameter_px, rng):
     diameter_mm = diameter_px * distance_mm * 0.0067 / 12.0
     spacing = 2 * C.RING_OUTER * diameter_mm / 2 * 1.25
     xy = np.stack(np.meshgrid(np.arange(4) - 1.5, np.arange(4) - 1.5), -1).reshape(-1, 2) * spacing
-    field = Field("sizes", tuple(f"C{c}" for c in codes), np.c_[xy, np.zeros(16)], codes,
-                  np.full(16, diameter_mm))
+    field = Field("sizes", tuple(f"C{c}" for c in codes), np.c_[xy, np.zeros(16)], codes, np.full(16, diameter_mm))
     frame, rows, ellipses, x_dir_deg = _render_tilted(field, distance_mm, np.full(16, 60.0), rng)
     assert len(rows) == 16
     readings = read_codes(frame.image, ellipses)
@@ -214,8 +216,11 @@ def test_one_bit_error_in_the_printed_ring_reads_as_no_code(rng, monkeypatch):
         return bits
 
     # Wherever the renderer looks the ring pattern up, it gets the damaged one.
-    patched = [m for name, m in list(sys.modules.items())
-               if name.startswith("service.sim") and getattr(m, "bits_of", None) is intact]
+    patched = [
+        m
+        for name, m in list(sys.modules.items())
+        if name.startswith("service.sim") and getattr(m, "bits_of", None) is intact
+    ]
     assert patched, "the renderer no longer draws rings through codes.bits_of; adapt this test"
     for module in patched:
         monkeypatch.setattr(module, "bits_of", bits_with_one_error)
@@ -226,8 +231,7 @@ def test_one_bit_error_in_the_printed_ring_reads_as_no_code(rng, monkeypatch):
 
 
 def test_uncoded_disk_is_not_read_as_a_code(rng):
-    field = reference_field(n_coded=0, n_uncoded=40, size_mm=(400.0, 300.0),
-                            uncoded_diameter_mm=10.0)
+    field = reference_field(n_coded=0, n_uncoded=40, size_mm=(400.0, 300.0), uncoded_diameter_mm=10.0)
     frame, rows, ellipses, _ = _render_tilted(field, 1000.0, rng.uniform(0, 60, len(field)), rng)
     assert len(rows) == 40
     assert all(r is None for r in read_codes(frame.image, ellipses))
@@ -243,12 +247,17 @@ def test_bright_neighbour_disks_just_outside_the_ring_do_not_disturb_reading(rng
     nb = (centres[:, None, :] + gap * np.stack([np.cos(angles), np.sin(angles)], -1)).reshape(-1, 2)
     xy = np.concatenate([centres, nb])
     n_nb = len(nb)
-    field = Field("neighbours", tuple([f"C{c}" for c in codes] + [f"P{k}" for k in range(n_nb)]),
-                  np.c_[xy, np.zeros(len(xy))], np.r_[codes, np.full(n_nb, -1)],
-                  np.r_[np.full(12, CODED_DIAMETER_MM), np.full(n_nb, 6.0)])
+    field = Field(
+        "neighbours",
+        tuple([f"C{c}" for c in codes] + [f"P{k}" for k in range(n_nb)]),
+        np.c_[xy, np.zeros(len(xy))],
+        np.r_[codes, np.full(n_nb, -1)],
+        np.r_[np.full(12, CODED_DIAMETER_MM), np.full(n_nb, 6.0)],
+    )
     camera = reference_camera()
-    T = reference_pose(view_angle_deg=45.0, distance_mm=900.0, azimuth_deg=rng.uniform(0, 360),
-                       roll_deg=rng.uniform(-180, 180))
+    T = reference_pose(
+        view_angle_deg=45.0, distance_mm=900.0, azimuth_deg=rng.uniform(0, 360), roll_deg=rng.uniform(-180, 180)
+    )
     frame = render_frame(camera, field, T, rng=rng)
     rows = np.arange(12)
     ellipses, _ = _disk_ellipses(camera, field, T, None, rows)
@@ -266,8 +275,7 @@ def test_reference_scene_decodes_from_contour_ellipses_with_noise_and_blur(rng):
     rows = field.indices_of(list(frame.ids))
     coded = np.flatnonzero((field.codes[rows] > 0) & frame.fully_visible)
     assert len(coded) >= 20
-    ellipses = _contour_ellipses(frame.image, frame.uv_disk_centroid[coded],
-                                 settings.background_dn + 30)
+    ellipses = _contour_ellipses(frame.image, frame.uv_disk_centroid[coded], settings.background_dn + 30)
     readings = read_codes(frame.image, ellipses)
     truth = field.codes[rows[coded]]
     assert all(r is None or r.code == c for r, c in zip(readings, truth))  # never a wrong code
@@ -329,8 +337,14 @@ def test_ring_samples_are_those_of_cv2_remap(dtype, scale, rng):
     decode_kernel._sample(image, mode, e, *m, pts, got)
     u = (e[0] + m[0] * pts[:, 0] + m[1] * pts[:, 1]).astype(np.float32)[None]
     v = (e[1] + m[2] * pts[:, 0] + m[3] * pts[:, 1]).astype(np.float32)[None]
-    ref = cv2.remap(image.astype(np.float32) if dtype == np.float64 else image, u, v, cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)[0].astype(np.float64)
+    ref = cv2.remap(
+        image.astype(np.float32) if dtype == np.float64 else image,
+        u,
+        v,
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )[0].astype(np.float64)
     inside = (u[0] >= 0) & (u[0] <= 59) & (v[0] >= 0) & (v[0] <= 39)
     assert 0.6 < inside.mean() < 0.95
     assert np.all(np.isnan(got[~inside]))

@@ -93,6 +93,7 @@ def _read_ring(img: np.ndarray, centre: tuple[int, int]) -> np.ndarray:
     radii = np.linspace(RING_INNER + 0.3, RING_OUTER - 0.3, 4)
     prof = np.mean([ring(r, t) for r in radii], axis=0)
     threshold = 0.5 * (np.median(ring(0.5, t)) + np.median(ring(0.5 * (1 + RING_INNER), t)))
+
     def sectors(phase: int) -> np.ndarray:  # (14, per - 2): each sector without its edges
         return np.roll(prof, -phase).reshape(N_BITS, per)[:, 1:-1]
 

@@ -24,8 +24,13 @@ SEED = 20261125
 
 def render(settings: RenderSettings | None = None, pose=None, field=None, seed: int | None = SEED):
     rng = None if seed is None else np.random.default_rng(seed)
-    return render_frame(reference_camera(), reference_field() if field is None else field,
-                        reference_pose() if pose is None else pose, settings or RenderSettings(), rng)
+    return render_frame(
+        reference_camera(),
+        reference_field() if field is None else field,
+        reference_pose() if pose is None else pose,
+        settings or RenderSettings(),
+        rng,
+    )
 
 
 def match(blobs: Blobs, uv_true: np.ndarray, tol_px: float = 0.5) -> np.ndarray:
@@ -65,8 +70,13 @@ def pair_field(separations_mm, diameter_mm=6.0) -> Field:
         ids += [f"A{k}", f"B{k}", f"S{k}"]
         xyz += [(x - sep / 2, 100.0, 0.0), (x + sep / 2, 100.0, 0.0), (x, -100.0, 0.0)]
     n = len(ids)
-    return Field(name="pairs", ids=tuple(ids), xyz=np.array(xyz), codes=-np.ones(n, dtype=np.int64),
-                 diameters_mm=np.full(n, diameter_mm))
+    return Field(
+        name="pairs",
+        ids=tuple(ids),
+        xyz=np.array(xyz),
+        codes=-np.ones(n, dtype=np.int64),
+        diameters_mm=np.full(n, diameter_mm),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -189,8 +199,9 @@ def test_disk_notched_by_a_dark_occluder_is_rejected():
     clean = render(field=field)
     uv = dict(zip(clean.ids, clean.uv_disk_centroid, strict=True))
     radius_px = 3.0 * 12.0 / 1000.0 / 0.0067
-    occluders = tuple((uv[f"S{k}"][0] + radius_px + 4.0 - depth, uv[f"S{k}"][1], 4.0)
-                      for k, depth in enumerate((2.0, 3.0, 4.0)))  # px of the disk covered
+    occluders = tuple(
+        (uv[f"S{k}"][0] + radius_px + 4.0 - depth, uv[f"S{k}"][1], 4.0) for k, depth in enumerate((2.0, 3.0, 4.0))
+    )  # px of the disk covered
     frame = render(RenderSettings(occluders=occluders), field=field)
     blobs, rejected = detect_blobs(frame.image)
     lone = np.array([uv[f"S{k}"] for k in range(3)])
@@ -249,13 +260,15 @@ def test_measure_windows_gives_the_centres_of_detect_blobs(noise_free, reference
 def test_measure_windows_reports_empty_off_target_and_outside_windows(reference):
     frame, blobs, _ = reference
     p = frame.uv_disk_centroid[frame.ids.index("P100")]
-    predicted = np.array([
-        p,                      # a good prediction
-        p + np.array([36.0, 0.0]),  # half-way to the next target: nothing there
-        p + np.array([5.0, 0.0]),  # off by 5 px: the disk reaches the window's edge
-        [3.0, 500.0],           # the window leaves the image
-        [np.nan, np.nan],       # no prediction
-    ])
+    predicted = np.array(
+        [
+            p,  # a good prediction
+            p + np.array([36.0, 0.0]),  # half-way to the next target: nothing there
+            p + np.array([5.0, 0.0]),  # off by 5 px: the disk reaches the window's edge
+            [3.0, 500.0],  # the window leaves the image
+            [np.nan, np.nan],  # no prediction
+        ]
+    )
     measured, index = measure_windows(frame.image, predicted, 9)
     assert index.tolist() == [0, -1, -1, -1, -1]
     assert len(measured) == 1

@@ -24,8 +24,9 @@ NOISY = RenderSettings(read_noise_dn=4.0, background_dn=12.0, target_dn=220.0)
 
 
 def render(settings: RenderSettings, seed: int = 3, **pose):
-    return render_frame(reference_camera(), reference_field(), reference_pose(**pose), settings,
-                        np.random.default_rng(seed))
+    return render_frame(
+        reference_camera(), reference_field(), reference_pose(**pose), settings, np.random.default_rng(seed)
+    )
 
 
 def total_noise_dn(s: RenderSettings) -> float:
@@ -67,7 +68,7 @@ def cv_drawn_frame(rng: np.random.Generator, shape=(1030, 1300), sub: int = 4):
         text = f"P{rng.integers(100, 999)} X{k}"
         x0, y0 = int(rng.integers(20, w - 200)), int(rng.integers(30, h - 20))
         (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
-        if not occupied[y0 - th - 2:y0 + 4, x0 - 2:x0 + tw + 2].any():
+        if not occupied[y0 - th - 2 : y0 + 4, x0 - 2 : x0 + tw + 2].any():
             cv2.putText(labels, text, (x0, y0), cv2.FONT_HERSHEY_SIMPLEX, 0.5, 60.0, 1, cv2.LINE_AA)
             k += 1
     image = image + 10.0 + weave + grain + 25.0 * u / w + glow + labels
@@ -80,11 +81,11 @@ def with_sticker(frame, side_px: int = 56, level_dn: float = 150.0):
     can be; and the square's centre (u, v) + 1/2 px."""
     lo = frame.uv_disk_centroid.min(axis=0).astype(int) + 100
     hi = frame.uv_disk_centroid.max(axis=0).astype(int) - 100
-    v, u = np.mgrid[lo[1]:hi[1]:2, lo[0]:hi[0]:2]
+    v, u = np.mgrid[lo[1] : hi[1] : 2, lo[0] : hi[0] : 2]
     gap = cKDTree(frame.uv_disk_centroid).query(np.column_stack([u.ravel(), v.ravel()]))[0]
     u0, v0 = u.ravel()[np.argmax(gap)], v.ravel()[np.argmax(gap)]
     sticker = np.zeros(frame.image.shape, dtype=np.float32)
-    sticker[v0 - side_px // 2:v0 + side_px // 2, u0 - side_px // 2:u0 + side_px // 2] = level_dn
+    sticker[v0 - side_px // 2 : v0 + side_px // 2, u0 - side_px // 2 : u0 + side_px // 2] = level_dn
     image = np.clip(frame.image + cv2.GaussianBlur(sticker, (0, 0), 0.8), 0, 255).astype(np.uint8)
     return image, (u0, v0)
 
@@ -121,8 +122,10 @@ def test_noisy_frame_is_measured_in_bounded_work():
 
 def test_a_frame_of_pure_noise_gives_nothing_to_measure():
     rng = np.random.default_rng(5)
-    for image in (np.clip(rng.normal(40, 20, (1030, 1300)), 0, 255).astype(np.uint8),
-                  rng.integers(0, 256, (1030, 1300), dtype=np.uint8)):
+    for image in (
+        np.clip(rng.normal(40, 20, (1030, 1300)), 0, 255).astype(np.uint8),
+        rng.integers(0, 256, (1030, 1300), dtype=np.uint8),
+    ):
         blobs, rejected = detect_blobs(image)
         assert len(blobs) == 0
         # before: 30 000 contours, 50 million pairs and 1 140 windows for N(40, 20)
@@ -139,8 +142,9 @@ def test_the_measured_windows_are_capped_at_the_brightest():
 
 
 def test_hot_spot_gradient_and_noise_together_still_give_every_target():
-    frame = render(RenderSettings(read_noise_dn=3.0, background_dn=12.0, hot_spot_dn=50.0, gradient_dn=30.0,
-                                  exposure_scale=0.8))
+    frame = render(
+        RenderSettings(read_noise_dn=3.0, background_dn=12.0, hot_spot_dn=50.0, gradient_dn=30.0, exposure_scale=0.8)
+    )
     blobs, rejected = detect_blobs(frame.image)
     d, _ = cKDTree(blobs.uv).query(frame.uv_disk_centroid)
     assert np.all(d < 0.5) and len(blobs) == len(frame.ids)

@@ -34,8 +34,9 @@ def scene():
 def test_image_refinement_recovers_the_hand_eye_within_what_the_arm_errors_allow(scene):
     cell, samples, P, C = scene
     pose_level = calibrate_handeye(P, C)
-    res = refine_handeye_on_images(cell.camera, samples, pose_level.T_flange_camera, pose_level.T_base_field,
-                                   sigma_px=0.02)
+    res = refine_handeye_on_images(
+        cell.camera, samples, pose_level.T_flange_camera, pose_level.T_base_field, sigma_px=0.02
+    )
     dX = pose_difference(res.T_flange_camera, cell.T_flange_camera)
     dZ = pose_difference(res.T_base_field, cell.T_base_field)
     assert dX[0] < 3.0 and dX[1] < 0.2, dX

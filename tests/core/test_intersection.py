@@ -120,10 +120,7 @@ def test_intersection_sigma_matches_its_covariance_monte_carlo(scene, rng):
     uv = [u[both] for u in scene.uv_true]
     truth = scene.p_master[both]
     n_trials = 300
-    uv_mc = [
-        np.tile(u, (n_trials, 1)) + rng.normal(0, SIGMA_PX, (n_trials * len(u), 2))
-        for u in uv
-    ]
+    uv_mc = [np.tile(u, (n_trials, 1)) + rng.normal(0, SIGMA_PX, (n_trials * len(u), 2)) for u in uv]
     res = intersect_rays(scene.rig, uv_mc, sigma_px=SIGMA_PX)
     assert np.all(res.valid)
     err = res.p_master - np.tile(truth, (n_trials, 1))
@@ -206,9 +203,7 @@ def test_epipolar_matching_pairs_uncoded_targets_without_mismatches(reference_ca
     assert 0.7 * n_both <= len(pairs) <= n_both
     assert len(np.unique(pairs[:, 0])) == len(pairs) == len(np.unique(pairs[:, 1]))
     # a depth window removes ghost intersections and so resolves more targets
-    window = epipolar_matches(
-        scene.rig, uv0, uv1, 1, tol_px=5 * SIGMA_PX, depth_range_mm=(600, 1500)
-    )
+    window = epipolar_matches(scene.rig, uv0, uv1, 1, tol_px=5 * SIGMA_PX, depth_range_mm=(600, 1500))
     assert np.array_equal(perm[window[:, 1]], window[:, 0])
     assert len(window) >= len(pairs)
 
@@ -242,9 +237,7 @@ def test_ambiguous_epipolar_candidates_are_rejected(scene):
     assert len(pairs) > 0.7 * len(rows)
     # the decoy's depth is outside a tight window, so the window resolves it
     z = scene.p_master[i, 2]
-    pairs_w = epipolar_matches(
-        scene.rig, uv0[rows], other, 1, tol_px=0.5, depth_range_mm=(z - 50, z + 50)
-    )
+    pairs_w = epipolar_matches(scene.rig, uv0[rows], other, 1, tol_px=0.5, depth_range_mm=(z - 50, z + 50))
     assert [0, 0] in pairs_w.tolist()
 
 

@@ -20,9 +20,7 @@ from service.core.results import Reason, SolveError
 SIGMA_PX = 0.05
 
 
-def camera_looking_at(
-    view_angle_deg: float, distance_mm: float, roll_deg: float = 17.0
-) -> np.ndarray:
+def camera_looking_at(view_angle_deg: float, distance_mm: float, roll_deg: float = 17.0) -> np.ndarray:
     """T_field_camera of a camera whose optical axis meets the plate z = 0 at its centre.
 
     ``view_angle_deg`` is the angle between the optical axis and the plate (90 = square on).
@@ -167,9 +165,7 @@ def test_predicted_sigma_matches_monte_carlo_scatter_with_005_px_noise(reference
     assert n_rejected <= 0.02 * n_trials  # the snooping hardly ever rejects a good point
 
 
-def test_a_posteriori_covariance_agrees_with_a_priori_one_when_sigma_is_right(
-    reference_camera, rng
-):
+def test_a_posteriori_covariance_agrees_with_a_priori_one_when_sigma_is_right(reference_camera, rng):
     _, p, uv = plate_scene(reference_camera, rng)
     uv_noisy = uv + rng.normal(0, SIGMA_PX, uv.shape)
     post = resect(reference_camera, p, uv_noisy)
@@ -241,9 +237,7 @@ def test_resection_converges_from_a_perturbed_start(reference_camera, rng, shift
     axis = rng.normal(size=3)
     dR = Rotation.from_rotvec(np.radians(turn_deg) * axis / np.linalg.norm(axis)).as_matrix()
     direction = rng.normal(size=3)
-    T_init = make_T(
-        dR @ T_true[:3, :3], T_true[:3, 3] + shift_mm * direction / np.linalg.norm(direction)
-    )
+    T_init = make_T(dR @ T_true[:3, :3], T_true[:3, 3] + shift_mm * direction / np.linalg.norm(direction))
     res = resect(reference_camera, p, uv_obs, T_field_camera_init=T_init)
     assert res.converged
     assert res.initial_cost > 1e3 * res.final_cost

@@ -108,8 +108,9 @@ def reference_resect(cam, p, uv, T0, sigma_px=None, max_sigma_px=0.5, max_iter=5
         Qxx = np.linalg.inv(A.T @ A)
         f, omega = 2 * len(idx) - 6, np.sum(v**2)
         T2, det = _statistics(v, A, Qxx, -1.0)
-        score = np.where(det > 1e-6, _scores(T2, np.maximum(omega - T2, 0) / max(f - 2, 1), f - 2, sigma_px,
-                                             max_sigma_px), 0.0)
+        score = np.where(
+            det > 1e-6, _scores(T2, np.maximum(omega - T2, 0) / max(f - 2, 1), f - 2, sigma_px, max_sigma_px), 0.0
+        )
         if score.max() > 1:
             if len(idx) - 1 < max(4, -(-n // 2)):
                 raise _Failed("too many gross errors")
@@ -172,8 +173,11 @@ def reference_planar_closed_form(p, xy, c):
 
 
 def noisy_scene(cam, rng, kind, n, n_gross, gross_px=(1.0, 30.0)):
-    T, p, uv = plate_scene(cam, rng, n=n, view_angle_deg=rng.uniform(60, 90)) if kind == "plate" else \
-        volume_scene(cam, rng, n=n)
+    T, p, uv = (
+        plate_scene(cam, rng, n=n, view_angle_deg=rng.uniform(60, 90))
+        if kind == "plate"
+        else volume_scene(cam, rng, n=n)
+    )
     uv = uv + rng.normal(0, SIGMA_PX, uv.shape)
     wrong = rng.choice(n, n_gross, replace=False)
     angle = rng.uniform(0, 2 * np.pi, n_gross)

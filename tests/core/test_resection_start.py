@@ -42,8 +42,9 @@ CAMERA = reference_camera()
 START_FAILURES = (Reason.behind_camera, Reason.no_convergence, Reason.degenerate_geometry)
 
 
-def raised_plate_scene(rng: np.random.Generator, n: int, height_mm: np.ndarray, tilt_deg: float,
-                       distance_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def raised_plate_scene(
+    rng: np.random.Generator, n: int, height_mm: np.ndarray, tilt_deg: float, distance_mm: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(T_field_camera, p_field (n, 3) mm, exact uv (n, 2) px): target i at field z = ``height_mm[i]``."""
     T = camera_looking_at(90.0 - tilt_deg, distance_mm)
     uv = rng.uniform([40, 40], [CAMERA.width - 41, CAMERA.height - 41], (n, 2))
@@ -148,8 +149,9 @@ def test_coplanar_majority_leaves_out_the_raised_targets_and_needs_a_majority(rn
     assert on_plane.tolist() == [False, False] + [True] * 28
     # a volume holds no plane with half its points
     T = camera_looking_at(70.0, 1000.0)
-    p_volume = apply_T(T, CAMERA.rays_from_pixel(rng.uniform([15, 15], [1280, 1010], (30, 2)))
-                       * rng.uniform(700, 1400, (30, 1)))
+    p_volume = apply_T(
+        T, CAMERA.rays_from_pixel(rng.uniform([15, 15], [1280, 1010], (30, 2))) * rng.uniform(700, 1400, (30, 1))
+    )
     assert coplanar_majority(p_volume) is None
 
 
@@ -185,8 +187,12 @@ PANEL_DETECT = DetectSettings(min_contrast_dn=40.0, min_area_px=20, max_area_px=
 @pytest.fixture(scope="module")
 def panel():
     data = shared_data(PANEL)
-    field = formats.field_from_aicon_txt((data / PANEL_POSITIONS).read_text(), PANEL_POSITIONS,
-                                         coded_diameter_mm=PANEL_DISK_MM, uncoded_diameter_mm=PANEL_DISK_MM)
+    field = formats.field_from_aicon_txt(
+        (data / PANEL_POSITIONS).read_text(),
+        PANEL_POSITIONS,
+        coded_diameter_mm=PANEL_DISK_MM,
+        uncoded_diameter_mm=PANEL_DISK_MM,
+    )
     images = {p.name[:8]: formats.read_image(p) for p in sorted((data / "images").glob("*_Scaled.tif"))}
     return field, images
 
@@ -249,5 +255,7 @@ def test_real_panel_images_with_one_block_target_are_measured(panel):
         if not isinstance(result, PoseResult):
             assert result.reason not in START_FAILURES, (name, result)
     if not one_block_target:
-        pytest.skip("no image shows just one block target with the default detection "
-                    "(test_real_panel_coded_targets_with_one_block_target_resect covers the case)")
+        pytest.skip(
+            "no image shows just one block target with the default detection "
+            "(test_real_panel_coded_targets_with_one_block_target_resect covers the case)"
+        )

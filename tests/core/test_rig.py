@@ -20,10 +20,8 @@ from tests.core.test_bundle import NOISE_PX, TRUE_CAMERA, convergent_poses, fiel
 
 SECOND_CAMERA = dataclasses.replace(TRUE_CAMERA, c_mm=12.4, x0_mm=-0.02, K1=-9e-4)
 #: camera 1 in camera 0's frame: 250 mm to the right, turned 12 deg towards camera 0's axis
-T_MASTER_CAMERA1 = make_T(Rotation.from_euler("xyz", [2.0, -12.0, 3.0], degrees=True).as_matrix(),
-                          [250.0, 5.0, -10.0])
-T_MASTER_CAMERA2 = make_T(Rotation.from_euler("xyz", [-15.0, 4.0, -2.0], degrees=True).as_matrix(),
-                          [10.0, 220.0, 15.0])
+T_MASTER_CAMERA1 = make_T(Rotation.from_euler("xyz", [2.0, -12.0, 3.0], degrees=True).as_matrix(), [250.0, 5.0, -10.0])
+T_MASTER_CAMERA2 = make_T(Rotation.from_euler("xyz", [-15.0, 4.0, -2.0], degrees=True).as_matrix(), [10.0, 220.0, 15.0])
 
 
 def rig_images(rng, field, poses, cameras, T_master, epoch_errors=None):
@@ -36,14 +34,22 @@ def rig_images(rng, field, poses, cameras, T_master, epoch_errors=None):
             p_camera = (field.xyz - T[:3, 3]) @ T[:3, :3]
             uv = cam.pixel_from_camera(p_camera)
             seen = cam.in_image(uv, 5.0) & (p_camera[:, 2] > 0)
-            images.append(RigImage(f"e{e}", k, tuple(np.array(field.ids)[seen]),
-                                   uv[seen] + rng.normal(0.0, NOISE_PX, (int(seen.sum()), 2)), f"cam{k}-e{e}"))
+            images.append(
+                RigImage(
+                    f"e{e}",
+                    k,
+                    tuple(np.array(field.ids)[seen]),
+                    uv[seen] + rng.normal(0.0, NOISE_PX, (int(seen.sum()), 2)),
+                    f"cam{k}-e{e}",
+                )
+            )
     return images
 
 
 def small_T(rng, sigma_deg: float, sigma_mm: float) -> np.ndarray:
-    return make_T(Rotation.from_rotvec(np.radians(rng.normal(0.0, sigma_deg, 3))).as_matrix(),
-                  rng.normal(0.0, sigma_mm, 3))
+    return make_T(
+        Rotation.from_rotvec(np.radians(rng.normal(0.0, sigma_deg, 3))).as_matrix(), rng.normal(0.0, sigma_mm, 3)
+    )
 
 
 def sync_and_flex_errors(rng, n_epochs: int, T_master, sync_s=0.5e-3, rate=(3.0, 30.0), flex=(0.003, 0.03)):
@@ -71,8 +77,9 @@ def pose_z(result, k: int, T_true) -> np.ndarray:
     """Errors of T_master_camera[k] in units of its sigma: rotation about, origin along camera 0's axes."""
     T = result.rig.T_master_camera[k]
     rot = Rotation.from_matrix(T[:3, :3] @ T_true[:3, :3].T).as_rotvec()
-    return np.r_[np.degrees(rot) / result.sigma_rotation_deg[k],
-                 (T[:3, 3] - T_true[:3, 3]) / result.sigma_position_mm[k]]
+    return np.r_[
+        np.degrees(rot) / result.sigma_rotation_deg[k], (T[:3, 3] - T_true[:3, 3]) / result.sigma_position_mm[k]
+    ]
 
 
 @pytest.mark.parametrize("seed", [1, 3, 4])
@@ -98,11 +105,18 @@ def test_rig_sigmas_agree_with_the_scatter_of_repeated_calibrations():
     poses = convergent_poses(rng, 6)
     errors, sigmas = [], []
     for _ in range(40):
-        result = calibrate_rig(cams, field, rig_images(rng, field, poses, cams, (np.eye(4), T_MASTER_CAMERA1)),
-                               sigma_px=NOISE_PX, reject_outliers=False, jackknife=False,
-                               T_master_camera_init=(np.eye(4), T_MASTER_CAMERA1))
-        errors.append(pose_z(result, 1, T_MASTER_CAMERA1) * np.r_[result.sigma_rotation_deg[1],
-                                                                   result.sigma_position_mm[1]])
+        result = calibrate_rig(
+            cams,
+            field,
+            rig_images(rng, field, poses, cams, (np.eye(4), T_MASTER_CAMERA1)),
+            sigma_px=NOISE_PX,
+            reject_outliers=False,
+            jackknife=False,
+            T_master_camera_init=(np.eye(4), T_MASTER_CAMERA1),
+        )
+        errors.append(
+            pose_z(result, 1, T_MASTER_CAMERA1) * np.r_[result.sigma_rotation_deg[1], result.sigma_position_mm[1]]
+        )
         sigmas.append(np.r_[result.sigma_rotation_deg[1], result.sigma_position_mm[1]])
     ratio = np.sqrt(np.mean(np.square(errors), axis=0)) / np.mean(sigmas, axis=0)
     assert np.all((0.67 < ratio) & (ratio < 1.33)), ratio
@@ -122,8 +136,9 @@ def test_rig_sigma_stays_honest_when_epochs_carry_synchronisation_and_flex_error
     errors, formal, reported = [], [], []
     for _ in range(40):
         images = rig_images(rng, field, poses, cams, T_master, sync_and_flex_errors(rng, len(poses), T_master))
-        result = calibrate_rig(cams, field, images, sigma_px=NOISE_PX, reject_outliers=False,
-                               T_master_camera_init=T_master)
+        result = calibrate_rig(
+            cams, field, images, sigma_px=NOISE_PX, reject_outliers=False, T_master_camera_init=T_master
+        )
         assert result.sigma_source == "max(formal, jackknife)"
         errors.append(relative_orientation_error(result, 1, T_MASTER_CAMERA1))
         formal.append(np.r_[result.sigma_rotation_formal_deg[1], result.sigma_position_formal_mm[1]])
@@ -144,8 +159,13 @@ def test_jackknife_does_not_inflate_an_honest_rig_sigma():
     poses = convergent_poses(rng, 8)
     ratios = []
     for _ in range(12):
-        result = calibrate_rig(cams, field, rig_images(rng, field, poses, cams, (np.eye(4), T_MASTER_CAMERA1)),
-                               sigma_px=NOISE_PX, reject_outliers=False)
+        result = calibrate_rig(
+            cams,
+            field,
+            rig_images(rng, field, poses, cams, (np.eye(4), T_MASTER_CAMERA1)),
+            sigma_px=NOISE_PX,
+            reject_outliers=False,
+        )
         jack = np.r_[result.sigma_rotation_jackknife_deg[1], result.sigma_position_jackknife_mm[1]]
         formal = np.r_[result.sigma_rotation_formal_deg[1], result.sigma_position_formal_mm[1]]
         assert np.all(np.isfinite(jack) & (jack > 0))
@@ -192,8 +212,10 @@ def test_rig_json_gives_the_rig_forward_intersection_needs(rng):
     assert rig.n_cameras == 2 and np.allclose(rig.T_master_camera, result.rig.T_master_camera, atol=1e-8)
     # a point 1.2 m in front of the master camera, seen by both cameras: intersected where it is
     p_master = np.array([[30.0, -20.0, 1200.0]])
-    uv = [cam.pixel_from_camera((p_master - T[:3, 3]) @ T[:3, :3])
-          for cam, T in zip(cams, (np.eye(4), T_MASTER_CAMERA1), strict=True)]
+    uv = [
+        cam.pixel_from_camera((p_master - T[:3, 3]) @ T[:3, :3])
+        for cam, T in zip(cams, (np.eye(4), T_MASTER_CAMERA1), strict=True)
+    ]
     got = intersect_rays(rig, uv)
     assert got.valid[0] and np.linalg.norm(got.p_master[0] - p_master[0]) < 0.2
     d = result.to_dict()
@@ -216,8 +238,11 @@ def test_a_camera_never_oriented_with_the_master_is_refused(rng):
     field = field_3d(rng, 100)
     cams = (TRUE_CAMERA, SECOND_CAMERA)
     images = rig_images(rng, field, convergent_poses(rng, 4), cams, (np.eye(4), T_MASTER_CAMERA1))
-    images = [im if im.camera == 0 or im.epoch != "e0" else dataclasses.replace(im, epoch="alone")
-              for im in images if im.camera == 0 or im.epoch == "e0"]
+    images = [
+        im if im.camera == 0 or im.epoch != "e0" else dataclasses.replace(im, epoch="alone")
+        for im in images
+        if im.camera == 0 or im.epoch == "e0"
+    ]
     images = [im for im in images if not (im.camera == 0 and im.epoch == "alone")]
     with pytest.raises(SolveError) as e:
         calibrate_rig(cams, field, images)

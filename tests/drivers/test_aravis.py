@@ -166,7 +166,7 @@ def test_roi_and_16_bit_formats_cut_the_sensor_window(standin, camera, pixel_for
 
     frame = cam.fetch(2.0)
     assert frame.image.dtype == np.uint16 and frame.image.shape == (h, w)
-    np.testing.assert_array_equal(frame.image, base[y: y + h, x: x + w].astype(np.uint16) << shift)
+    np.testing.assert_array_equal(frame.image, base[y : y + h, x : x + w].astype(np.uint16) << shift)
     assert (cam.info.width, cam.info.height, cam.info.pixel_format) == (w, h, pixel_format)
 
 
@@ -181,7 +181,11 @@ def test_exposure_gain_trigger_and_strobe_round_trip(standin, camera):
     assert read("Gain") == pytest.approx(6.0)
     assert (read("TriggerMode"), read("TriggerSource")) == ("On", "Software")
     assert (read("LineSelector"), read("LineMode"), read("LineSource"), read("LineInverter")) == (
-        "Line1", "Output", "Timer0Active", False)
+        "Line1",
+        "Output",
+        "Timer0Active",
+        False,
+    )
     assert read("TimerDuration") == pytest.approx(800.0) and read("TimerDelay") == pytest.approx(10.0)
     assert read("TimerTriggerSource") == "ExposureStart"
     # and the camera itself holds them (its register map, read on the camera's side)

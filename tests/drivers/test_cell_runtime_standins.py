@@ -49,8 +49,9 @@ def _alive(pid: int) -> bool:
 
 def test_a_killed_rtde_standin_is_restarted_and_robot_samples_flow_again(tmp_path: Path) -> None:
     events: list[tuple[str, str, str]] = []
-    runtime = CellRuntime(load_settings(None, state_dir=tmp_path, sim__transport="standins"),
-                          on_event=lambda *e: events.append(e))
+    runtime = CellRuntime(
+        load_settings(None, state_dir=tmp_path, sim__transport="standins"), on_event=lambda *e: events.append(e)
+    )
     runtime.rtde_address = RTDE_ADDRESS
     runtime.start()
     robot = URRobot(RTDE_ADDRESS, frequency_hz=125.0, reconnect_interval_s=0.2)
@@ -78,8 +79,10 @@ def test_a_killed_rtde_standin_is_restarted_and_robot_samples_flow_again(tmp_pat
         # the same cell and epoch: the restarted controller reports where the arm is now
         s = robot.latest()
         t_cell_s = (s.t_host_ns - runtime.epoch_ns) * 1e-9
-        errors = [pose_difference(s.T_base_flange, runtime.cell.robot_report(t_cell_s - dt, None)[0])[0]
-                  for dt in np.linspace(0.0, 0.005, 11)]
+        errors = [
+            pose_difference(s.T_base_flange, runtime.cell.robot_report(t_cell_s - dt, None)[0])[0]
+            for dt in np.linspace(0.0, 0.005, 11)
+        ]
         assert min(errors) < 0.2
     finally:
         robot.close()
@@ -99,8 +102,9 @@ def test_the_standins_stop_with_the_service_that_started_them(tmp_path: Path) ->
         "print(*(p.pid for p in r.standin_processes.values()), flush=True)\n"
         "time.sleep(60)\n"
     )
-    service = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
-                               cwd=Path(__file__).resolve().parents[2])
+    service = subprocess.Popen(
+        [sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[2]
+    )
     try:
         assert service.stdout is not None
         pids = [int(p) for p in service.stdout.readline().split()]

@@ -33,8 +33,10 @@ def test_ur_driver_reads_the_simulated_arm_at_125_hz_through_the_rtde_stand_in()
             s = window[-1]
             # the controller's nominal belief at that instant (encoder noise ~0.01 mm, delivery < 5 ms)
             t_cell = (s.t_host_ns - epoch) * 1e-9
-            errors = [pose_difference(s.T_base_flange, cell.robot_report(t_cell - dt, None)[0])[0]
-                      for dt in np.linspace(0.0, 0.005, 11)]
+            errors = [
+                pose_difference(s.T_base_flange, cell.robot_report(t_cell - dt, None)[0])[0]
+                for dt in np.linspace(0.0, 0.005, 11)
+            ]
             assert min(errors) < 0.2
         finally:
             robot.close()

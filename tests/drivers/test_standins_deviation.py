@@ -64,11 +64,16 @@ class _Results:
             "vector_mm": np.array([r["deviation"]["vector_mm"] for _, r in rows]).reshape(-1, 3),
             "sigma_mm": np.array([np.linalg.norm(r["sigma_position_mm"]) for _, r in rows]),
             # the camera pose in the image against the true one at the claimed exposure instant
-            "camera_mm": np.array([np.linalg.norm(np.array(r["T_field_camera"])[:3, 3] - cell.T_field_camera(ti)[:3, 3])
-                                   for ti, (_, r) in zip(t, rows, strict=True)]),
+            "camera_mm": np.array(
+                [
+                    np.linalg.norm(np.array(r["T_field_camera"])[:3, 3] - cell.T_field_camera(ti)[:3, 3])
+                    for ti, (_, r) in zip(t, rows, strict=True)
+                ]
+            ),
             # the deviation the cell really has then: the true arm against the controller's belief
-            "true_vector_mm": (cell.T_base_flange_true(t)[..., :3, 3] - cell.T_base_flange_commanded(t)[..., :3, 3]
-                               ).reshape(-1, 3),
+            "true_vector_mm": (
+                cell.T_base_flange_true(t)[..., :3, 3] - cell.T_base_flange_commanded(t)[..., :3, 3]
+            ).reshape(-1, 3),
         }
 
 
@@ -86,8 +91,14 @@ def test_standins_deviation_matches_direct_mode_within_sigma(tmp_path: Path) -> 
     for mode in ("direct", "standins"):
         # the stand-ins' latencies are stated by the runtime (service.runtime.cell_runtime), the direct one's here
         latency = SIM_ROBOT_LATENCY_S if mode == "direct" else None
-        settings = load_settings(None, state_dir=tmp_path / mode, sim__transport=mode, sim__seed=0,
-                                 sim__program="circle", robot__transport_latency_s=latency)
+        settings = load_settings(
+            None,
+            state_dir=tmp_path / mode,
+            sim__transport=mode,
+            sim__seed=0,
+            sim__program="circle",
+            robot__transport_latency_s=latency,
+        )
         workers[mode] = Worker(settings, None)
     workers["standins"].cell.rtde_address = RTDE_ADDRESS
     results = {mode: _Results(w) for mode, w in workers.items()}
@@ -122,10 +133,12 @@ def test_standins_deviation_matches_direct_mode_within_sigma(tmp_path: Path) -> 
         "median_standins_mm": float(np.median(s["position_mm"])),
         "median_direct_mm": float(np.median(d["position_mm"])),
         "median_difference_mm": float(np.median(difference_mm)),
-        "p90_vector_error_standins_mm": float(np.percentile(
-            np.linalg.norm(s["vector_mm"] - s["true_vector_mm"], axis=1), 90)),
-        "p90_vector_error_direct_mm": float(np.percentile(
-            np.linalg.norm(d["vector_mm"] - d["true_vector_mm"], axis=1), 90)),
+        "p90_vector_error_standins_mm": float(
+            np.percentile(np.linalg.norm(s["vector_mm"] - s["true_vector_mm"], axis=1), 90)
+        ),
+        "p90_vector_error_direct_mm": float(
+            np.percentile(np.linalg.norm(d["vector_mm"] - d["true_vector_mm"], axis=1), 90)
+        ),
         "camera_p90_standins_mm": float(np.percentile(s["camera_mm"], 90)),
         "camera_p90_direct_mm": float(np.percentile(d["camera_mm"], 90)),
     }

@@ -76,8 +76,9 @@ def test_the_worker_reports_a_killed_rtde_child_before_it_reconnects(tmp_path) -
             assert _wait_for(lambda: worker.robot_state is DeviceState.ok, 20.0) is not None
             seen: list[str] = []
             os.kill(worker.robot._proc.pid, signal.SIGKILL)
-            t_down = _wait_for(lambda: seen.append(str(worker.robot_state)) or worker.robot_state
-                               is DeviceState.disconnected, 1.0)
+            t_down = _wait_for(
+                lambda: seen.append(str(worker.robot_state)) or worker.robot_state is DeviceState.disconnected, 1.0
+            )
             assert t_down is not None, f"the outage never showed: {sorted(set(seen))}"
             assert _wait_for(lambda: worker.robot_state is DeviceState.ok, 10.0) is not None
         finally:

@@ -31,10 +31,12 @@ def _outputs_setup(frequency_hz: float, names: str) -> bytes:
 
 def _handshake(session: rs.RtdeSession, frequency_hz: float, names: str) -> list[bytes]:
     replies = []
-    for pkg in (rs.pack_package(rs.REQUEST_PROTOCOL_VERSION, b"\x00\x02"),
-                rs.pack_package(rs.GET_URCONTROL_VERSION),
-                _outputs_setup(frequency_hz, names),
-                rs.pack_package(rs.START)):
+    for pkg in (
+        rs.pack_package(rs.REQUEST_PROTOCOL_VERSION, b"\x00\x02"),
+        rs.pack_package(rs.GET_URCONTROL_VERSION),
+        _outputs_setup(frequency_hz, names),
+        rs.pack_package(rs.START),
+    ):
         replies += session.feed(pkg)
     return replies
 
@@ -81,7 +83,7 @@ def test_unknown_package_type_gets_a_text_message_and_the_session_goes_on():
     (reply,) = session.feed(rs.pack_package(ord("Z"), b"abc"))
     size, kind, n = struct.unpack_from(">HBB", reply)
     assert kind == rs.TEXT_MESSAGE and size == len(reply)
-    assert b"unknown package type" in reply[4:4 + n]
+    assert b"unknown package type" in reply[4 : 4 + n]
     assert reply[-1] == rs.ERROR_MESSAGE
     assert session.feed(rs.pack_package(rs.GET_URCONTROL_VERSION))[0][2] == rs.GET_URCONTROL_VERSION
 
@@ -96,21 +98,69 @@ def test_packages_split_across_reads_are_reassembled_and_a_bad_size_is_a_protoco
 
 
 def test_every_rtde_type_is_serialised_big_endian_from_state_and_extra():
-    names = ["output_bit_register_64", "tool_output_mode", "runtime_state", "actual_digital_input_bits",
-             "safety_mode", "speed_scaling", "actual_tool_accelerometer", "actual_TCP_pose", "joint_mode"]
+    names = [
+        "output_bit_register_64",
+        "tool_output_mode",
+        "runtime_state",
+        "actual_digital_input_bits",
+        "safety_mode",
+        "speed_scaling",
+        "actual_tool_accelerometer",
+        "actual_TCP_pose",
+        "joint_mode",
+    ]
     session = rs.RtdeSession()
     session.feed(_outputs_setup(500.0, ",".join(names)))
     recipe = session.outputs[1]
-    assert recipe.types == ["BOOL", "UINT8", "UINT32", "UINT64", "INT32", "DOUBLE", "VECTOR3D", "VECTOR6D",
-                            "VECTOR6INT32"]
-    state = rs.RobotState(actual_TCP_pose=(1, 2, 3, 4, 5, 6), runtime_state=4, safety_mode=-3,
-                          speed_scaling=0.25, joint_mode=(253, 254, 255, 236, 237, 238),
-                          extra={"output_bit_register_64": True, "tool_output_mode": 2,
-                                 "actual_digital_input_bits": 2**40 + 5, "actual_tool_accelerometer": (0, 0, 9.81)})
+    assert recipe.types == [
+        "BOOL",
+        "UINT8",
+        "UINT32",
+        "UINT64",
+        "INT32",
+        "DOUBLE",
+        "VECTOR3D",
+        "VECTOR6D",
+        "VECTOR6INT32",
+    ]
+    state = rs.RobotState(
+        actual_TCP_pose=(1, 2, 3, 4, 5, 6),
+        runtime_state=4,
+        safety_mode=-3,
+        speed_scaling=0.25,
+        joint_mode=(253, 254, 255, 236, 237, 238),
+        extra={
+            "output_bit_register_64": True,
+            "tool_output_mode": 2,
+            "actual_digital_input_bits": 2**40 + 5,
+            "actual_tool_accelerometer": (0, 0, 9.81),
+        },
+    )
     pkg = rs.serialize_outputs(recipe, state, 1.0)
     values = struct.unpack(">HBB?BIQid3d6d6i", pkg)
-    assert values[3:] == (True, 2, 4, 2**40 + 5, -3, 0.25, 0.0, 0.0, 9.81, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0,
-                          253, 254, 255, 236, 237, 238)
+    assert values[3:] == (
+        True,
+        2,
+        4,
+        2**40 + 5,
+        -3,
+        0.25,
+        0.0,
+        0.0,
+        9.81,
+        1.0,
+        2.0,
+        3.0,
+        4.0,
+        5.0,
+        6.0,
+        253,
+        254,
+        255,
+        236,
+        237,
+        238,
+    )
 
 
 def test_input_recipe_accepts_data_packages_from_the_client():
@@ -176,8 +226,9 @@ def test_registry_makes_a_ur_robot_driver_and_refuses_another_port():
 
 # 125 Hz is the requirement; at 500 Hz a loaded 2-core machine (the stand-in shares this process) loses
 # a few packages, and ur_rtde keeps only the newest, so the lower band is looser there.
-@pytest.mark.parametrize(("host", "frequency_hz", "min_fraction"),
-                         [("127.0.0.2", 125.0, 0.8), ("127.0.0.3", 500.0, 0.7)])
+@pytest.mark.parametrize(
+    ("host", "frequency_hz", "min_fraction"), [("127.0.0.2", 125.0, 0.8), ("127.0.0.3", 500.0, 0.7)]
+)
 def test_ur_rtde_reads_the_standin_at_the_asked_rate_with_matching_poses(host, frequency_hz, min_fraction):
     arm = rs.DemoArm()
     with _standin(host, arm), _opened(URRobot(host, frequency_hz=frequency_hz)) as robot:
@@ -207,8 +258,10 @@ def test_ur_rtde_reads_the_standin_at_the_asked_rate_with_matching_poses(host, f
 def test_tcp_offset_set_on_the_controller_is_removed_to_give_the_flange():
     T_flange_tcp = T_from_ur_pose([0.02, -0.01, 0.18, 0.0, 0.3, 0.1])  # a 180 mm tool, tilted
     arm = rs.DemoArm(T_flange_tcp)
-    with _standin("127.0.0.4", arm), _opened(URRobot("127.0.0.4", frequency_hz=125.0,
-                                                     T_flange_tcp=T_flange_tcp)) as robot:
+    with (
+        _standin("127.0.0.4", arm),
+        _opened(URRobot("127.0.0.4", frequency_hz=125.0, T_flange_tcp=T_flange_tcp)) as robot,
+    ):
         np.testing.assert_allclose(np.array(robot.info.T_flange_tcp), T_flange_tcp)
         assert _wait_for(lambda: len(robot.samples_between(0, 2**63 - 1)) >= 20, 3.0) is not None
         for s in robot.samples_between(0, 2**63 - 1)[-20:]:
@@ -221,8 +274,10 @@ def test_tcp_offset_set_on_the_controller_is_removed_to_give_the_flange():
 
 def test_latest_raises_after_the_standin_stops_and_samples_flow_again_after_it_restarts():
     host = "127.0.0.5"
-    with _standin(host, rs.DemoArm()) as server, _opened(URRobot(host, frequency_hz=125.0,
-                                                                 reconnect_interval_s=0.2)) as robot:
+    with (
+        _standin(host, rs.DemoArm()) as server,
+        _opened(URRobot(host, frequency_hz=125.0, reconnect_interval_s=0.2)) as robot,
+    ):
         robot.latest()
         server.stop()
 

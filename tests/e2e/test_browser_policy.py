@@ -26,8 +26,12 @@ document.addEventListener('securitypolicyviolation',
 
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
-    settings = load_settings(None, state_dir=str(tmp_path_factory.mktemp("policy-state")), server__port=free_port(),
-                             server__token="policy-token")
+    settings = load_settings(
+        None,
+        state_dir=str(tmp_path_factory.mktemp("policy-state")),
+        server__port=free_port(),
+        server__token="policy-token",
+    )
     yield from run_server(settings)
 
 
@@ -67,8 +71,12 @@ def test_docs_render_the_api_from_local_assets_under_the_policy(page: Page, cell
     page.click(".opblock.is-open .try-out__btn")
     page.wait("!!document.querySelector('.opblock.is-open .execute')", "the Execute button")
     page.click(".opblock.is-open .execute")
-    page.wait("[...document.querySelectorAll('.opblock.is-open .live-responses-table .response-col_status')]"
-              ".some(e => e.textContent.trim() === '200')", "the live answer of /health", 15)
+    page.wait(
+        "[...document.querySelectorAll('.opblock.is-open .live-responses-table .response-col_status')]"
+        ".some(e => e.textContent.trim() === '200')",
+        "the live answer of /health",
+        15,
+    )
     assert "processing" in page.text(".opblock.is-open .live-responses-table .highlight-code")
     page.js("0")
     assert page.exceptions == []

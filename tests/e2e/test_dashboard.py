@@ -30,10 +30,19 @@ from tests.api.conftest import LiveServer, free_port, run_server
 
 TOKEN = "dashboard-test-token"
 CHROMIUM_FLAGS = [
-    "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-    "--disable-extensions", "--mute-audio", "--window-size=1280,1000",
-    "--remote-debugging-address=127.0.0.1", "--remote-debugging-port=0",
+    "--headless=new",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-dev-shm-usage",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--disable-extensions",
+    "--mute-audio",
+    "--window-size=1280,1000",
+    "--remote-debugging-address=127.0.0.1",
+    "--remote-debugging-port=0",
 ]
 
 
@@ -51,8 +60,12 @@ class Page:
 
     def __init__(self, binary: str, profile: Path, log: Path) -> None:
         self._log = log.open("wb")
-        self.proc = subprocess.Popen([binary, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "about:blank"],
-                                     stdin=subprocess.DEVNULL, stdout=self._log, stderr=self._log)
+        self.proc = subprocess.Popen(
+            [binary, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "about:blank"],
+            stdin=subprocess.DEVNULL,
+            stdout=self._log,
+            stderr=self._log,
+        )
         self.exceptions: list[dict[str, Any]] = []
         self._id = 0
         self._stack = contextlib.ExitStack()
@@ -118,13 +131,17 @@ class Page:
 
     def click(self, selector: str) -> None:
         """A real mouse click at the element's centre (not el.click()): it must be visible and on top."""
-        box = self.wait(f"""(() => {{
+        box = self.wait(
+            f"""(() => {{
             const e = document.querySelector({json.dumps(selector)});
             e.scrollIntoView({{block: 'center'}});
             const r = e.getBoundingClientRect();
             const x = r.x + r.width / 2, y = r.y + r.height / 2;
             return e.contains(document.elementFromPoint(x, y)) && [x, y];
-        }})()""", f"{selector} to be visible and on top", 5)
+        }})()""",
+            f"{selector} to be visible and on top",
+            5,
+        )
         for kind in ("mousePressed", "mouseReleased"):
             self.call("Input.dispatchMouseEvent", type=kind, x=box[0], y=box[1], button="left", clickCount=1)
 
@@ -135,8 +152,9 @@ class Page:
             self.call("Input.insertText", text=text)
         else:
             for kind in ("rawKeyDown", "keyUp"):
-                self.call("Input.dispatchKeyEvent", type=kind, key="Backspace", code="Backspace",
-                          windowsVirtualKeyCode=8)
+                self.call(
+                    "Input.dispatchKeyEvent", type=kind, key="Backspace", code="Backspace", windowsVirtualKeyCode=8
+                )
 
     def screenshot(self, path: Path) -> None:
         path.write_bytes(base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"]))
@@ -163,8 +181,9 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
     try:
         # the first start on a fresh machine compiles the numba kernels (a minute on a slow CI machine):
         # wait for it here so the page's own waits measure the page, not the warm-up
-        server.wait_for(lambda h: h["status"] == "ok" and h["processing"]["ok"] >= 3, timeout_s=180.0,
-                        what="a running cell")
+        server.wait_for(
+            lambda h: h["status"] == "ok" and h["processing"]["ok"] >= 3, timeout_s=180.0, what="a running cell"
+        )
         yield server
     finally:
         servers.close()  # run_server's finally stops uvicorn and the worker
@@ -323,13 +342,18 @@ def test_unplugged_camera_card_says_disconnected_and_why_then_recovers(page: Pag
         with cell.client() as c:
             sentence = c.get("/health").json()["cameras"]["cam0"]["error"]
         assert "unplugged" in sentence
-        page.wait(f"document.querySelector('{cam} .device-error').textContent === {json.dumps(sentence)}",
-                  "the camera's error sentence")
+        page.wait(
+            f"document.querySelector('{cam} .device-error').textContent === {json.dumps(sentence)}",
+            "the camera's error sentence",
+        )
         assert page.text("#status") == "degraded"
         page.wait("document.getElementById('pose').classList.contains('stale')", "the live pose marked stale", 6)
         assert "no new result" in page.text("#pose-age")
-        page.wait("/camera_disconnected/.test(document.getElementById('frame-failure').textContent)",
-                  "the frame marked as the last one before the camera went away", 5)
+        page.wait(
+            "/camera_disconnected/.test(document.getElementById('frame-failure').textContent)",
+            "the frame marked as the last one before the camera went away",
+            5,
+        )
     finally:
         driver.plug()
     page.wait(f"document.querySelector('{cam}').dataset.state === 'ok'", "camera cam0 back to ok", 20)

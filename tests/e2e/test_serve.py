@@ -38,10 +38,19 @@ def test_serve_runs_the_simulated_cell_from_a_config_file_and_stops_cleanly(tmp_
     port = free_port()
     cfg = tmp_path / "posecell.toml"
     cfg.write_text((ROOT / "deploy" / "posecell.example.toml").read_text().replace("port = 8000", "port = 1"))
-    env = {**os.environ, "POSECELL_SERVER__PORT": str(port), "POSECELL_STATE_DIR": str(tmp_path / "state"),
-           "POSECELL_SERVER__TOKEN": "e2e"}
-    proc = subprocess.Popen([str(POSECELL), "serve", "--config", str(cfg)], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    env = {
+        **os.environ,
+        "POSECELL_SERVER__PORT": str(port),
+        "POSECELL_STATE_DIR": str(tmp_path / "state"),
+        "POSECELL_SERVER__TOKEN": "e2e",
+    }
+    proc = subprocess.Popen(
+        [str(POSECELL), "serve", "--config", str(cfg)],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         h = _wait_health(f"http://127.0.0.1:{port}", proc)
         assert h["cameras"]["cam0"]["state"] == "ok"
@@ -72,11 +81,13 @@ def test_serve_refuses_a_bad_configuration_with_one_sentence(tmp_path):
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed here")
 def test_systemd_unit_verifies_and_is_hardened(tmp_path):
     unit = tmp_path / "posecell.service"
-    unit.write_text((ROOT / "deploy" / "posecell.service").read_text().replace(
-        "/opt/posecell/.venv/bin/posecell", str(POSECELL)))
+    unit.write_text(
+        (ROOT / "deploy" / "posecell.service").read_text().replace("/opt/posecell/.venv/bin/posecell", str(POSECELL))
+    )
     r = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
-    r = subprocess.run(["systemd-analyze", "security", "--offline=yes", str(unit)], capture_output=True, text=True,
-                       timeout=60)
+    r = subprocess.run(
+        ["systemd-analyze", "security", "--offline=yes", str(unit)], capture_output=True, text=True, timeout=60
+    )
     exposure = float(r.stdout.split("Overall exposure level for posecell.service:")[1].split()[0])
     assert exposure < 4.5  # "OK" on systemd's scale (lower is safer)

@@ -49,11 +49,22 @@ def _session_limit() -> None:  # in the child, before exec: the soft limit of a 
 def test_a_thousand_idle_sockets_neither_block_the_api_nor_stay_open(tmp_path):
     port = free_port()
     url = f"http://127.0.0.1:{port}"
-    env = {**os.environ, "POSECELL_SERVER__PORT": str(port), "POSECELL_STATE_DIR": str(tmp_path / "state"),
-           "POSECELL_SERVER__TOKEN": "e2e", "POSECELL_SERVER__TIMEOUT_HEADER_S": str(HEADER_TIMEOUT_S)}
+    env = {
+        **os.environ,
+        "POSECELL_SERVER__PORT": str(port),
+        "POSECELL_STATE_DIR": str(tmp_path / "state"),
+        "POSECELL_SERVER__TOKEN": "e2e",
+        "POSECELL_SERVER__TIMEOUT_HEADER_S": str(HEADER_TIMEOUT_S),
+    }
     with _open_files(N_IDLE + 512):
-        proc = subprocess.Popen([str(POSECELL), "serve"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                                text=True, preexec_fn=_session_limit)
+        proc = subprocess.Popen(
+            [str(POSECELL), "serve"],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=_session_limit,
+        )
         idle: list[socket.socket] = []
         try:
             _wait_health(url, proc)
