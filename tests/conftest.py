@@ -12,6 +12,39 @@ from service.sim import scene
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
+# The quick loop (`deploy/dev.sh test -m "not slow"`) leaves out the tests marked slow one by one
+# (over 10 s) and these modules as a whole: they start real servers, processes, stand-ins or a
+# browser, or read the real data sets, at 1-8 s a test. `deploy/dev.sh test` (CI) runs everything.
+SLOW_MODULES = (
+    "tests/e2e/",
+    "tests/api/test_api.py",
+    "tests/api/test_handeye_workflow.py",
+    "tests/api/test_http_hardening.py",
+    "tests/api/test_reliability.py",
+    "tests/api/test_rig_mode.py",
+    "tests/api/test_validation.py",
+    "tests/drivers/test_aravis.py",
+    "tests/drivers/test_cell_runtime_standins.py",
+    "tests/drivers/test_sim_cell_standins.py",
+    "tests/drivers/test_standins_deviation.py",
+    "tests/drivers/test_ur_child_restart.py",
+    "tests/drivers/test_ur_rtde.py",
+    "tests/drivers/test_pairing.py",
+    "tests/test_cli.py",
+    "tests/test_calibrate_camera_cli.py",
+    "tests/test_calibrate_rig_cli.py",
+    "tests/test_calibrate_robot.py",
+    "tests/test_ur5_laser_tracker.py",
+    "tests/test_real_panel.py",
+    "tests/test_dbat_reference.py",
+)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.nodeid.startswith(SLOW_MODULES):
+            item.add_marker(pytest.mark.slow)
+
 
 def shared_data(name: str) -> Path:
     """Path of a real data set in ../shared/data, or skip the test saying why."""

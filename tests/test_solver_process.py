@@ -23,6 +23,7 @@ def _refuse() -> None:
     raise SolveError(Reason.degenerate_geometry, "all points on a line", {"n": 3})
 
 
+@pytest.mark.slow  # over 3 s: Monte Carlo, repeated calibrations or child processes
 def test_solves_run_in_a_child_and_its_errors_and_crashes_come_back():
     solver = SolverProcess()
     try:

@@ -224,6 +224,7 @@ KILL_CHILD = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow  # over 3 s: Monte Carlo, repeated calibrations or child processes
 @pytest.mark.parametrize("synchronous", ["FULL", "NORMAL"])
 def test_kill_9_mid_stream_loses_no_acknowledged_row_and_leaves_a_sound_database(tmp_path, synchronous):
     db = tmp_path / "m.db"

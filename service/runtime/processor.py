@@ -24,11 +24,11 @@ from typing import Any
 import numpy as np
 
 from drivers.base import Frame, RobotDriver
-from service.core.geometry.frames import inv_T, pose_difference
 from service.core.pose.timesync import TimeOffsetFit, estimate_time_offset_s
 from service.core.results import Failure, PoseResult, Reason
 from service.core.targets.codes import FAMILIES
 from service.core.targets.detect import DetectSettings
+from service.pipeline.flange import deviation, flange_from_camera
 from service.pipeline.measure import FrameMeasurer, MeasureSettings
 from service.runtime.acquisition import DeviceState
 from service.runtime.calibration_state import CalibrationState
@@ -161,15 +161,10 @@ class CameraProcessor:
             out.setdefault("flange_reason", "not_calibrated")
             out.setdefault("flange_message", "no hand-eye calibration: the flange pose cannot be measured")
             return
-        T_measured = he.T_base_field @ np.asarray(result.T_field_camera) @ inv_T(he.T_flange_camera)
+        T_measured = flange_from_camera(he, result.T_field_camera)
         out["T_base_flange_measured"] = _round_T(T_measured)
         if T_reported is not None:
-            dpos, dang = pose_difference(T_measured, T_reported)
-            out["deviation"] = {
-                "position_mm": round(dpos, 4),
-                "angle_deg": round(dang, 5),
-                "vector_mm": [round(float(v), 4) for v in T_measured[:3, 3] - T_reported[:3, 3]],
-            }
+            out["deviation"] = deviation(T_measured, T_reported).to_dict()
             with self._motion_lock:
                 self._motion.append((t_exposure_ns * 1e-9, T_measured[:3, 3].copy(), T_reported[:3, 3].copy()))
                 self._n_since_offset += 1

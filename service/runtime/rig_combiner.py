@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from service.core.geometry.frames import inv_T, pose_difference
 from service.core.pose.intersection import Rig, pose_from_intersection
 from service.core.results import Reason, SolveError
 from service.core.targets.field import Field
+from service.pipeline.flange import deviation, flange_from_camera
 
 RIG = "rig"
 
@@ -92,16 +92,10 @@ class RigCombiner:
             "deviation": None,
         }
         if handeye is not None:
-            T_meas = handeye.T_base_field @ res.T_field_master @ inv_T(handeye.T_flange_camera)
+            T_meas = flange_from_camera(handeye, res.T_field_master)
             out["T_base_flange_measured"] = T_meas.tolist()
             if master.get("T_base_flange") is not None:
-                T_rep = np.asarray(master["T_base_flange"])
-                dpos, dang = pose_difference(T_meas, T_rep)
-                out["deviation"] = {
-                    "position_mm": round(dpos, 4),
-                    "angle_deg": round(dang, 5),
-                    "vector_mm": [round(float(v), 4) for v in T_meas[:3, 3] - T_rep[:3, 3]],
-                }
+                out["deviation"] = deviation(T_meas, np.asarray(master["T_base_flange"])).to_dict()
         if "truth" in master:
             out["truth"] = master["truth"]
         return out

@@ -7,6 +7,7 @@ camera or robot) the way a technician would.
 
 from __future__ import annotations
 
+import functools
 import socket
 import threading
 import time
@@ -21,7 +22,17 @@ import uvicorn
 
 from api.app import create_app
 from api.serve import uvicorn_config
+from service.pipeline.measure import FrameMeasurer
 from service.settings import Settings, load_settings
+from service.sim import scene
+
+
+@functools.lru_cache(maxsize=1)
+def kernels_compiled() -> None:
+    """Compile (or load from numba's cache) every kernel once per test process, before a server's
+    clock starts: on a fresh, busy CI machine the first compile takes minutes, which is not what the
+    servers' timeouts are there to measure."""
+    FrameMeasurer(scene.reference_camera(), scene.reference_field())
 
 
 def free_port() -> int:
@@ -58,6 +69,7 @@ class LiveServer:
 
 
 def run_server(settings: Settings) -> Iterator[LiveServer]:
+    kernels_compiled()
     app = create_app(settings)
     # the service's own uvicorn options (timeouts, limits), on loopback
     server = uvicorn.Server(uvicorn_config(app, settings, host="127.0.0.1", log_level="warning"))

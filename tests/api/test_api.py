@@ -16,7 +16,7 @@ from service.core.geometry.frames import pose_difference
 
 
 def _wait_ok(live):
-    # the first start on a fresh machine compiles the numba kernels (a minute on a slow CI machine)
+    # the kernels are compiled before the server starts (conftest.kernels_compiled): this is the cell starting
     return live.wait_for(
         lambda h: h["status"] == "ok" and h["processing"]["ok"] >= 3, timeout_s=180.0, what="a running cell"
     )

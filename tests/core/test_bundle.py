@@ -325,6 +325,7 @@ def test_images_parallel_to_a_planar_field_are_refused_with_advice(rng):
     assert "head-on" in e.value.message and "convergent" in e.value.message and "rolled" in e.value.message
 
 
+@pytest.mark.slow  # over 3 s: Monte Carlo, repeated calibrations or child processes
 def test_convergent_images_of_a_plate_without_roll_are_refused_with_advice(rng):
     # the classic weak network: the principal distance and point trade off against the poses
     plate = scene.reference_field()

@@ -31,6 +31,7 @@ def scene():
     return cell, samples, np.array(poses), np.array(C)
 
 
+@pytest.mark.slow  # over 3 s: Monte Carlo, repeated calibrations or child processes
 def test_image_refinement_recovers_the_hand_eye_within_what_the_arm_errors_allow(scene):
     cell, samples, P, C = scene
     pose_level = calibrate_handeye(P, C)

@@ -335,6 +335,7 @@ def test_pose_from_intersection_recovers_master_pose_without_noise(scene):
     assert np.all(res.sigma_position_mm > 0) and np.all(res.sigma_rotation_deg > 0)
 
 
+@pytest.mark.slow  # over 3 s: Monte Carlo, repeated calibrations or child processes
 def test_pose_covariance_matches_monte_carlo_scatter(scene, rng):
     """Pose errors over noisy trials vs the covariance propagated from the points' covariances."""
     n_trials = 400

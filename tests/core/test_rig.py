@@ -97,6 +97,7 @@ def test_rig_calibration_recovers_the_relative_orientation_within_3_sigma(seed):
     assert len(result.epochs) == 8 and result.T_field_rig.shape == (8, 4, 4)
 
 
+@pytest.mark.slow  # over 3 s: Monte Carlo, repeated calibrations or child processes
 def test_rig_sigmas_agree_with_the_scatter_of_repeated_calibrations():
     # 40 trials: a sample standard deviation is known to 1/sqrt(78) = 11 %; the band is 3 of those
     rng = np.random.default_rng(5)
@@ -150,6 +151,7 @@ def test_rig_sigma_stays_honest_when_epochs_carry_synchronisation_and_flex_error
     assert any("scatters between epochs" in w for w in result.warnings)
 
 
+@pytest.mark.slow  # over 3 s: Monte Carlo, repeated calibrations or child processes
 def test_jackknife_does_not_inflate_an_honest_rig_sigma():
     # no epoch errors: the formal sigma is right (test above this one), so max(formal, jackknife)
     # may only add the jackknife's own sampling error: on average less than 30 %
@@ -222,6 +224,7 @@ def test_rig_json_gives_the_rig_forward_intersection_needs(rng):
     assert d["model"] == "rig" and len(d["sigma_position_mm"]) == 2 and "sigma0_px" in d["calibration"]
 
 
+@pytest.mark.slow  # over 3 s: Monte Carlo, repeated calibrations or child processes
 def test_rig_can_survey_the_field_too(rng):
     truth = field_3d(rng, 120)
     nominal = dataclasses.replace(truth, xyz=truth.xyz + rng.normal(0.0, 0.3, truth.xyz.shape))
