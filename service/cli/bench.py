@@ -1,0 +1,40 @@
+"""``posecell bench``: the speed and accuracy benchmarks of DESIGN section 7, printed as markdown
+tables (the sections are in :mod:`service.bench`)."""
+
+from __future__ import annotations
+
+import argparse
+
+from service.cli.common import Subparsers
+
+
+def add_parser(subparsers: Subparsers) -> None:
+    b = subparsers.add_parser(
+        "bench",
+        help="speed and accuracy benchmarks (DESIGN section 7)",
+        description="Runs the benchmark sections and prints their tables (markdown).",
+    )
+    b.add_argument(
+        "sections",
+        nargs="*",
+        default=[],
+        help="sections to run (default: all): accuracy, speed, faults",
+    )
+    b.add_argument("--frames", type=int, default=120, help="rendered frames for the speed section")
+    b.add_argument(
+        "--condition-frames",
+        type=int,
+        default=30,
+        help="frames per row of the speed section's condition matrix (0: leave it out)",
+    )
+    b.add_argument("--trials", type=int, default=500, help="Monte-Carlo trials for the accuracy tables")
+    b.add_argument("--seed", type=int, default=1)
+    b.add_argument("--rounds", type=int, default=5, help="repetitions of each fault for the faults section")
+    b.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """The sections read their options from ``args`` themselves; an unknown section exits 2."""
+    from service.bench.main import run_bench
+
+    return run_bench(args)

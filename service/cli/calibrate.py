@@ -1,0 +1,128 @@
+"""``posecell calibrate``: the calibration verbs.
+
+Here: ``handeye`` (T_flange_camera and T_base_field from pose pairs), ``robot`` (the arm's kinematic
+errors from measured flange positions) and ``handeye-session`` (the guided hand-eye calibration of a
+running service). The bundle adjustments ``camera`` and ``rig`` are in :mod:`service.cli.calibrate_bundle`.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from service.cli import calibrate_bundle
+from service.cli.common import EXIT_FAILED, CliError, Subparsers, print_err, print_json, solving
+
+
+def add_parser(subparsers: Subparsers) -> None:
+    cal = subparsers.add_parser("calibrate", help="calibration workflows").add_subparsers(dest="what", metavar="WHAT")
+    cal.required = True
+    _add_handeye(cal)
+    _add_robot(cal)
+    _add_handeye_session(cal)
+    calibrate_bundle.add_parsers(cal)  # camera, rig: listed after these in the help, as they always were
+
+
+def _add_handeye(cal: Subparsers) -> None:
+    he = cal.add_parser(
+        "handeye",
+        help="hand-eye (T_flange_camera) and robot-world (T_base_field) calibration",
+        description="Solves T_base_flange_j @ X = Z @ T_field_camera_j for X = T_flange_camera and "
+        "Z = T_base_field (Tsai-Lenz, then a joint least-squares refinement).",
+    )
+    he.add_argument("--samples", required=True, help="JSON list of {'T_base_flange': 4x4, 'T_field_camera': 4x4} in mm")
+    he.add_argument("-o", "--output", help="also write the result to this JSON file")
+    he.set_defaults(func=run_handeye)
+
+
+def _add_robot(cal: Subparsers) -> None:
+    rb = cal.add_parser(
+        "robot",
+        help="correct the robot model from measured flange positions",
+        description="Identifies the arm's kinematic errors (DH rows, base placement, the measured point on the "
+        "flange) from a CSV of joint angles joint_1..joint_6 (deg) and measured positions (x_mm, y_mm, z_mm, or "
+        "the laser-tracker form x_t..z_t + x_dif..z_dif), with sigma and the combinations that cannot be "
+        "separated; --test reports the error on poses that took no part.",
+    )
+    rb.add_argument("--robot", required=True, choices=["ur5", "ur10e", "kr15"], help="the nominal model")
+    rb.add_argument("--samples", required=True, type=Path, help="calibration poses (CSV)")
+    rb.add_argument("--test", type=Path, help="test poses (CSV), reported before/after")
+    rb.add_argument(
+        "--tool-mm",
+        type=float,
+        nargs=3,
+        metavar=("X", "Y", "Z"),
+        help="the measured point on the flange, when the CSV has no commanded positions",
+    )
+    rb.add_argument("-o", "--output", type=Path, help="write the corrected model (JSON)")
+    rb.set_defaults(func=run_robot)
+
+
+def _add_handeye_session(cal: Subparsers) -> None:
+    hs = cal.add_parser(
+        "handeye-session",
+        help="the guided hand-eye calibration of a running service",
+        description="Drives the service's guided hand-eye calibration: start (propose robot poses around the "
+        "field), move K (simulated cell only), sample (record at the robot's resting pose), status, solve "
+        "[--apply], export (samples for --samples). The token comes from --token, $POSECELL_TOKEN or the "
+        "service's api-token file.",
+    )
+    hs.add_argument("action", choices=["start", "move", "sample", "status", "solve", "export"])
+    hs.add_argument("index", nargs="?", type=int, help="proposal index for 'move'")
+    hs.add_argument("--url", default="http://127.0.0.1:8000", help="the service (default: %(default)s)")
+    hs.add_argument("--token", help="bearer token for the service")
+    hs.add_argument("--poses", type=int, default=12, help="proposed poses for 'start' (default: %(default)s)")
+    hs.add_argument("--apply", action="store_true", help="with 'solve': store and use the result")
+    hs.set_defaults(func=run_handeye_session)
+
+
+def run_handeye(args: argparse.Namespace) -> int:
+    """Solve X and Z from the samples file; prints the result JSON (and writes it with -o), then any warnings."""
+    from service.core.calib.handeye import calibrate_handeye
+    from service.core.geometry.frames import check_T
+    from service.store import formats
+
+    T_base_flange, T_field_camera = formats.read_handeye_samples(args.samples)
+    # a non-rigid matrix is a typo in the user's file: name the sample rather than let the solver fail on it
+    for name, stack in (("T_base_flange", T_base_flange), ("T_field_camera", T_field_camera)):
+        for k, T in enumerate(stack):
+            try:
+                check_T(T, f"sample #{k} {name}", atol=1e-4)
+            except ValueError as e:
+                raise CliError(f"{args.samples}: {e}") from None
+    with solving("calibrate handeye"):
+        result = calibrate_handeye(T_base_flange, T_field_camera)
+    out = {"ok": True, **result.to_dict()}
+    if args.output:
+        formats.write_json_atomic(args.output, out)
+    print_json(out)
+    for w in result.warnings:
+        print_err(f"posecell calibrate handeye: warning: {w}")
+    return 0
+
+
+def run_robot(args: argparse.Namespace) -> int:
+    """Identify the arm's errors; prints the corrected model JSON (and writes it with -o)."""
+    from service.store import formats
+    from service.workflows.calibrate_robot import run_robot_calibration
+
+    with solving("calibrate robot"):
+        out = run_robot_calibration(args.robot, args.samples, args.test, args.tool_mm)
+    if args.output:
+        formats.write_json_atomic(args.output, out)
+    print_json(out)
+    return 0
+
+
+def run_handeye_session(args: argparse.Namespace) -> int:
+    """One step of the service's guided session over HTTP; prints the service's answer."""
+    from service.workflows.handeye_client import ClientError, default_token, run
+
+    try:
+        out = run(args.action, args.url, args.token or default_token(), args.poses, args.index, args.apply)
+    except ClientError as e:
+        # the service refused the step or could not be reached: its sentence, and the step failed (1)
+        print_err(f"posecell calibrate handeye-session: {e}")
+        return EXIT_FAILED
+    print_json(out)
+    return 0

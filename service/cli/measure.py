@@ -1,0 +1,107 @@
+"""``posecell measure``: detect, decode and identify the targets in each image and resect the camera.
+
+One JSON line per image (DESIGN section 4). An image that cannot be read or measured gives ok=false
+with its reason and the run goes on; the exit code is 1 only when no image could be measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+from service.cli.common import EXIT_FAILED, Subparsers, print_err, print_json
+
+
+def add_parser(subparsers: Subparsers) -> None:
+    m = subparsers.add_parser(
+        "measure",
+        help="measure targets and the camera pose in images",
+        description="Detects, decodes and identifies the targets in each image and resects the camera; "
+        "prints one JSON line per image (DESIGN section 4). An image that cannot be measured gives "
+        "ok=false with a reason, and the run goes on.",
+    )
+    m.add_argument("--camera", required=True, help="camera.json")
+    m.add_argument("--field", required=True, help="field.json or field.csv")
+    m.add_argument("--sigma-px", type=float, default=None, help="a-priori image precision, px")
+    m.add_argument(
+        "--no-eccentricity", action="store_true", help="do not correct the perspective bias of circle centres"
+    )
+    m.add_argument(
+        "--code-family",
+        choices=["posecell12", "aicon14"],
+        default="posecell12",
+        help="ring code of the coded targets: posecell's own 12-bit targets (default) or "
+        "AICON-style 14-bit targets as MicMac MMVII reads them (field: an AICON point list .txt)",
+    )
+    m.add_argument(
+        "--min-contrast-dn",
+        type=float,
+        default=None,
+        help="smallest target contrast above the local background, 8-bit DN (default 20, and "
+        "never less than 8 times the noise the detector measures in the image)",
+    )
+    m.add_argument("--min-area-px", type=int, default=None, help="smallest blob area, px (default 6)")
+    m.add_argument(
+        "--max-area-px",
+        type=int,
+        default=None,
+        help="largest blob area, px (default 5000); lower it for images where bright patches "
+        "bigger than any target (stickers, labels) are many",
+    )
+    m.add_argument(
+        "--max-sigma0-px",
+        type=float,
+        default=None,
+        help="largest accepted sigma0 of the final adjustment, px (default 0.5)",
+    )
+    m.add_argument("images", nargs="+", metavar="IMAGE", help="PNG, TIFF or PGM, 8 or 16 bit")
+    m.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from service.core.results import Failure, Reason
+    from service.core.targets.codes import FAMILIES
+    from service.core.targets.detect import DetectSettings
+    from service.pipeline.measure import FrameMeasurer, MeasureSettings
+    from service.store import formats
+
+    camera = formats.read_camera(args.camera)
+    field = formats.read_field(args.field)
+    # only the options given: the detector's own defaults stay the one place they are set
+    detect = DetectSettings(
+        **{
+            k: v
+            for k, v in (
+                ("min_contrast_dn", args.min_contrast_dn),
+                ("min_area_px", args.min_area_px),
+                ("max_area_px", args.max_area_px),
+            )
+            if v is not None
+        }
+    )
+    settings = MeasureSettings(
+        sigma_px=args.sigma_px,
+        correct_eccentricity=not args.no_eccentricity,
+        detect=detect,
+        code_family=FAMILIES[args.code_family],
+    )
+    if args.max_sigma0_px is not None:
+        settings = dataclasses.replace(settings, max_sigma0_px=args.max_sigma0_px)
+    measurer = FrameMeasurer(camera, field, settings)
+    failed = 0
+    for path in args.images:
+        try:
+            image = formats.read_image(path)
+        except formats.FormatError as e:
+            # one unreadable file is one failed image, not the end of the run
+            out = Failure(Reason.bad_image, str(e)).to_dict()
+        else:
+            outcome = measurer.measure(image)
+            out = outcome.result.to_dict()
+            out["timings_ms"] = {k: round(v, 3) for k, v in outcome.timings_ms.items()}
+        out = {"image": str(path), **out}
+        failed += not out["ok"]
+        print_json(out)
+        if not out["ok"]:
+            print_err(f"posecell measure: {path}: {out['message']}")
+    return EXIT_FAILED if failed == len(args.images) else 0
