@@ -26,6 +26,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
+from service.cli import calibrate_bundle
 from service.cli import main as cli
 from service.core.geometry.camera_model import BrownFraser
 from service.core.geometry.frames import apply_T, inv_T
@@ -390,7 +391,7 @@ def camera_calibrated_by_posecell(tmp_path_factory):
     out = tmp_path_factory.mktemp("panel-defaults") / "camera.json"
     with pytest.MonkeyPatch.context() as mp:  # the summary line, without the test's capsys
         lines: list[str] = []
-        mp.setattr(cli, "_print_json", lambda obj: lines.append(json.dumps(obj)))
+        mp.setattr(calibrate_bundle, "print_json", lambda obj: lines.append(json.dumps(obj)))  # the verb's printer
         code = cli.main(
             [
                 "calibrate",

@@ -148,12 +148,14 @@ def _ellipse_from_conic(A, B, C, D, E):
 
 
 @njit(cache=True, error_model="numpy")
-def _fit_conic(r, ray, found, size):
+def _fit_conic(r, ray, found, size, G, g, row):
     """Direct least-squares conic through the points ``r[d] * ray[d]`` px with ``found[d]``,
-    about the ellipse's centre; returns its centre offset, semi-axes, angle and validity."""
-    G = np.zeros((5, 5))
-    g = np.zeros(5)
-    row = np.empty(5)
+    about the ellipse's centre; returns its centre offset, semi-axes, angle and validity.
+    ``G`` (5, 5), ``g`` and ``row`` (5,) are scratch."""
+    for a in range(5):
+        g[a] = 0.0
+        for b in range(5):
+            G[a, b] = 0.0
     for d in range(r.size):
         if not found[d]:
             continue
@@ -172,12 +174,13 @@ def _fit_conic(r, ray, found, size):
 
 
 @njit(cache=True, error_model="numpy")
-def _may_have_ring(img, mode, e, pts, vals):
+def _may_have_ring(img, mode, e, pts, vals, work):
     """Whether anything in the ring zone (``pts[13:]``) is clearly brighter than the gap
-    (``pts[1:13]``) round the disk's centre (``pts[0]``)."""
+    (``pts[1:13]``) round the disk's centre (``pts[0]``). ``vals`` (len(pts),) and ``work`` (12,)
+    are scratch."""
     m00, m01, m10, m11 = _affine(e)
     _sample(img, mode, e, m00, m01, m10, m11, pts, vals)
-    disk, gap = vals[0], _median(vals[1:13], np.empty(12))
+    disk, gap = vals[0], _median(vals[1:13], work)
     ring_max = -np.inf
     for k in range(13, pts.shape[0]):
         if np.isfinite(vals[k]) and vals[k] > ring_max:
@@ -186,17 +189,21 @@ def _may_have_ring(img, mode, e, pts, vals):
 
 
 @njit(cache=True, error_model="numpy")
-def _refine(img, mode, e, rho, step, dirs, pts, lo_index, lo_gamma, out):
+def _refine(img, mode, e, rho, step, dirs, pts, lo_index, lo_gamma, out, ws, found, ray, G, g, row):
     """Re-fit the disk ellipse ``e`` to the half-level edge along the rays ``dirs`` (D, 2) sampled
-    at ``rho`` (R,) (``pts`` = rho x dirs); write it to ``out`` (5,). See ``decode._refine_ellipse``."""
+    at ``rho`` (R,) (``pts`` = rho x dirs); write it to ``out`` (5,). Step 1 of the
+    :mod:`~service.core.targets.decode` docstring. ``ws`` (2 R D + 6 D,), ``found`` (D,) bool,
+    ``ray`` (D, 2) and ``G``, ``g``, ``row`` (see :func:`_fit_conic`) are scratch."""
     nr, nd = rho.size, dirs.shape[0]
     m00, m01, m10, m11 = _affine(e)
-    vals = np.empty(nr * nd)
+    vals, work = ws[: nr * nd], ws[nr * nd : 2 * nr * nd]
+    o = 2 * nr * nd
+    r50, x0s, x1s = ws[o : o + nd], ws[o + nd : o + 2 * nd], ws[o + 2 * nd : o + 3 * nd]
+    rim, var, shifted = ws[o + 3 * nd : o + 4 * nd], ws[o + 4 * nd : o + 5 * nd], ws[o + 5 * nd : o + 6 * nd]
     _sample(img, mode, e, m00, m01, m10, m11, pts, vals)
     for k in range(vals.size):
         if vals[k] != vals[k]:
             vals[k] = 0.0
-    work = np.empty(vals.size)
     hi = _median(vals[:nd], work)
     n_out = 0
     for ri in range(nr):
@@ -213,9 +220,6 @@ def _refine(img, mode, e, rho, step, dirs, pts, lo_index, lo_gamma, out):
     else:
         below = above = _kth_smallest(work[:n_out], lo_index)
     lo = below + (above - below) * lo_gamma
-    r50, x0s, x1s = np.empty(nd), np.empty(nd), np.empty(nd)
-    found = np.zeros(nd, dtype=np.bool_)
-    ray, rim = np.empty((nd, 2)), np.empty(nd)
     n_found = 0
     for d in range(nd):
         i1, hit = 0, False
@@ -237,23 +241,21 @@ def _refine(img, mode, e, rho, step, dirs, pts, lo_index, lo_gamma, out):
     for k in range(5):
         out[k] = e[k]
     size = np.sqrt(e[2] * e[3])
-    cx, cy, A, B, angle, ok = _fit_conic(r50, ray, found, size)
+    cx, cy, A, B, angle, ok = _fit_conic(r50, ray, found, size, G, g, row)
     # Blur moves the half-level contour inwards by sigma^2 / 2 times its curvature: sigma from the
-    # edge slope, each edge point pushed out by that, and a second fit (decode._refine_ellipse)
-    var = np.empty(nd)
+    # edge slope, each edge point pushed out by that, and a second fit
     for d in range(nd):
         slope = (x0s[d] - x1s[d]) / step / rim[d]
         var[d] = 1.0 / (2 * np.pi * (slope * slope)) if found[d] and slope > 0 else np.nan
     sigma = np.sqrt(_finite_median(var, work))
     ca, sa = np.cos(angle), np.sin(angle)
-    shifted = np.empty(nd)
     for d in range(nd):
         rx, ry = r50[d] * ray[d, 0] - cx, r50[d] * ray[d, 1] - cy
         t = np.arctan2((-sa * rx + ca * ry) / B, (ca * rx + sa * ry) / A)
         kappa = A * B / (A * A * np.sin(t) ** 2 + B * B * np.cos(t) ** 2) ** 1.5
         shift = 0.5 * sigma * sigma * kappa / rim[d]
         shifted[d] = r50[d] + (min(shift, 0.5) if np.isfinite(shift) and ok else 0.0)
-    cx, cy, A, B, angle, ok2 = _fit_conic(shifted, ray, found, size)
+    cx, cy, A, B, angle, ok2 = _fit_conic(shifted, ray, found, size, G, g, row)
     b0 = min(e[2], e[3])
     # trust the fit only near the input: an edge ray that ran into a neighbour must not drag it
     ok = ok and ok2 and n_found >= 16 and np.hypot(cx, cy) < 0.5 * b0 + 0.5
@@ -268,6 +270,13 @@ def _refine(img, mode, e, rho, step, dirs, pts, lo_index, lo_gamma, out):
         delta = delta if abs(delta) < 0.5 * b0 else 0.0
         out[2] += delta
         out[3] += delta
+
+
+@njit(cache=True)
+def read_scratch_size(P, n_disk, n_gap, K, S, run):
+    """The length of :func:`_read_ring`'s float scratch."""
+    KS = K * S
+    return P + max(n_disk, n_gap) + n_gap + 5 * KS + (KS + run) + 4 * K + S
 
 
 @njit(cache=True, error_model="numpy")
@@ -290,30 +299,54 @@ def _read_ring(
     limits,
     levels_out,
     bits_out,
+    ws,
 ):
-    """Read the ring of the ellipse ``e`` (see ``decode._measure``): whether it passes every check
-    of ``decode.read_codes``, its code, roll (sectors), margin, roll_deg, disk and background DN.
-    ``levels_out`` and ``bits_out`` (K,) receive the sectors as read."""
-    min_conf, min_snr, min_minor, min_diam, min_margin_snr, min_ratio, max_spread, max_level = limits
+    """Read the ring of the ellipse ``e`` (steps 3-4 of the :mod:`~service.core.targets.decode`
+    docstring): whether it passes every check of ``decode.read_codes``, its code, roll (sectors),
+    margin, roll_deg, disk and background DN. ``levels_out`` and ``bits_out`` (K,) receive the
+    sectors as read; ``ws`` (:func:`read_scratch_size`,) is scratch.
+
+    A reading that fails a check is never used (see :func:`read_rings_kernel`), so each check
+    returns as soon as what it needs is known: the ellipse's size before any sample, the disk's
+    contrast and the gap before the ring's samples, the word and margin before the roll. The
+    values of a failed reading are therefore not meaningful."""
+    min_conf, min_snr, min_minor, min_diam, min_margin_snr, min_ratio, max_spread, max_level = limits[:8]
+    fail = (False, 0, 0, -1.0, np.nan, np.nan, np.nan)
+    b_px, a_px = min(e[2], e[3]), max(e[2], e[3])
+    if not (b_px >= min_minor and 2 * a_px >= min_diam and b_px >= min_ratio * a_px):
+        return fail
     P = pts.shape[0]
     KS = K * S
+    n_in = n_disk + n_gap  # disk and gap samples come first
+    o = 0
+    vals = ws[o : o + P]
+    o += P
+    work = ws[o : o + max(n_disk, n_gap)]
+    o += max(n_disk, n_gap)
+    diffs = ws[o : o + n_gap]
+    o += n_gap
+    profile, prof_in, prof_out = ws[o : o + KS], ws[o + KS : o + 2 * KS], ws[o + 2 * KS : o + 3 * KS]
+    run_in, run_out = ws[o + 3 * KS : o + 4 * KS], ws[o + 4 * KS : o + 5 * KS]
+    o += 5 * KS
+    csum = ws[o : o + KS + run]
+    o += KS + run
+    lv, srt, pmin, pmax = ws[o : o + K], ws[o + K : o + 2 * K], ws[o + 2 * K : o + 3 * K], ws[o + 3 * K : o + 4 * K]
+    o += 4 * K
+    edge = ws[o : o + S]
     m00, m01, m10, m11 = _affine(e)
-    vals = np.empty(P)
-    _sample(img, mode, e, m00, m01, m10, m11, pts, vals)
-    for k in range(P):
+    _sample(img, mode, e, m00, m01, m10, m11, pts[:n_in], vals[:n_in])
+    for k in range(n_in):
         if not np.isfinite(vals[k]):
-            return False, 0, 0, -1.0, np.nan, np.nan, np.nan
-    work = np.empty(max(n_disk, n_gap))
+            return fail
     disk_dn = _median(vals[:n_disk], work)
-    gap = vals[n_disk : n_disk + n_gap]
+    gap = vals[n_disk:n_in]
     gap_dn = _median(gap, work)
     bg = gap_dn if bg_given != bg_given else bg_given
-    # noise from differences of angular neighbours round the gap (see decode._measure)
+    # noise from differences of angular neighbours round the gap, robust to the odd bright speck
     ng = n_gap // 2
-    diffs = np.empty(n_gap)
     spread_lo, spread_hi = np.inf, -np.inf
     for k in range(ng):
-        kp = (k - 1) % ng
+        kp = k - 1 if k > 0 else ng - 1
         diffs[k] = abs(gap[k] - gap[kp])
         diffs[ng + k] = abs(gap[ng + k] - gap[ng + kp])
         g = (gap[k] + gap[ng + k]) / 2
@@ -321,38 +354,47 @@ def _read_ring(
     noise_dn = 1.4826 / np.sqrt(2.0) * _median(diffs, work)
     contrast = disk_dn - bg
     scale = contrast if contrast > 0 else 1.0
+    noise = max(noise_dn, floor_dn)
+    if not (contrast > min_snr * noise and (spread_hi - spread_lo) / scale <= max_spread):
+        return fail
+    _sample(img, mode, e, m00, m01, m10, m11, pts[n_in:], vals[n_in:])
+    ring = vals[n_in:]
+    for k in range(ring.size):
+        if not np.isfinite(ring[k]):
+            return fail
     # profile (mean over radii) and the inner/outer halves' means, per ring sample
-    ring = vals[n_disk + n_gap :]
     h = n_radii // 2
-    profile, prof2 = np.zeros(KS), np.zeros((2, KS))
+    profile[:] = 0.0
+    prof_in[:] = 0.0
+    prof_out[:] = 0.0
     for ri in range(n_radii):  # radius by radius: the inner loops vectorise
-        part = prof2[0] if ri < h else prof2[1]
+        part = prof_in if ri < h else prof_out
         for j in range(KS):
             x = (ring[ri * KS + j] - bg) / scale
             profile[j] += x
             part[j] += x
     for j in range(KS):
-        profile[j], prof2[0, j], prof2[1, j] = profile[j] / n_radii, prof2[0, j] / h, prof2[1, j] / (n_radii - h)
+        profile[j], prof_in[j], prof_out[j] = profile[j] / n_radii, prof_in[j] / h, prof_out[j] / (n_radii - h)
     # running means of `run` samples of the mid-sample values, by a cumulative sum (wrapping round)
-    run_mean = np.empty((2, KS))
-    csum = np.empty(KS + run)
     for half in range(2):
+        prof = prof_in if half == 0 else prof_out
+        run_mean = run_in if half == 0 else run_out
         c = 0.0
         csum[0] = 0.0
         for i in range(KS + run - 1):
-            ii = i % KS
-            c += 0.5 * (prof2[half, ii] + prof2[half, (ii + 1) % KS])
+            ii = i if i < KS else i - KS  # no integer modulo in the hot loops: it costs a division
+            c += 0.5 * (prof[ii] + prof[ii + 1 if ii + 1 < KS else 0])
             csum[i + 1] = c
         for i in range(KS):
-            run_mean[half, i] = (csum[i + run] - csum[i]) / run
+            run_mean[i] = (csum[i + run] - csum[i]) / run
     # every phase: sector levels in four parts (inner/outer x first/second half of the core); the
     # threshold at the widest gap of the sorted levels; the margin between the worst parts
-    lv, srt, pmin, pmax = np.empty(K), np.empty(K), np.empty(K), np.empty(K)
     best_j, best_margin, best_thr = 0, -np.inf, 0.0
     for j in range(S):
         for k in range(K):
-            i0, i1 = (j + S * k + core_a) % KS, (j + S * k + S // 2) % KS
-            a, b, c, d = run_mean[0, i0], run_mean[0, i1], run_mean[1, i0], run_mean[1, i1]
+            i0, i1 = j + S * k + core_a, j + S * k + S // 2  # below KS + S: one wrap at most
+            i0, i1 = i0 - KS if i0 >= KS else i0, i1 - KS if i1 >= KS else i1
+            a, b, c, d = run_in[i0], run_in[i1], run_out[i0], run_out[i1]
             lv[k] = (((a + b) + c) + d) / 4
             srt[k] = lv[k]
             pmin[k], pmax[k] = min(min(a, b), min(c, d)), max(max(a, b), max(c, d))
@@ -382,16 +424,26 @@ def _read_ring(
         word |= int(bits_out[k]) << k
         level_max = max(level_max, levels_out[k])
     code, roll = code_of[word], roll_of[word]
+    good = (
+        best_margin >= min_conf
+        and best_margin * contrast >= min_margin_snr * noise
+        and best_thr > 0.1
+        and best_thr < 0.8
+        and level_max <= max_level
+        and code > 0
+    )
+    if not good:
+        return fail
     # sub-sample phase, for the roll only: the sector edges folded onto one sector, searched within a
     # quarter sector of the chosen phase, a parabola through the peak
-    edge = np.zeros(S)
+    edge[:] = 0.0
     for k in range(K):
         for s in range(S):
             i = k * S + s
-            edge[s] += abs(profile[(i + 1) % KS] - profile[i])
+            edge[s] += abs(profile[i + 1 if i + 1 < KS else 0] - profile[i])
     jj, e_best = 0, -np.inf
-    for o in range(-(S // 4), S // 4 + 1):
-        w = (j + o) % S
+    for off in range(-(S // 4), S // 4 + 1):
+        w = (j + off) % S
         if edge[w] > e_best:
             jj, e_best = w, edge[w]
     em, e0, ep = edge[(jj - 1) % S], edge[jj], edge[(jj + 1) % S]
@@ -402,22 +454,19 @@ def _read_ring(
     phi = -(roll * S + phase) * (_TWO_PI / KS)
     cp, sp = np.cos(phi), np.sin(phi)
     roll_deg = np.degrees(np.arctan2(-(m10 * cp + m11 * sp), m00 * cp + m01 * sp))
-    b_px, a_px = min(e[2], e[3]), max(e[2], e[3])
-    noise = max(noise_dn, floor_dn)
-    good = (
-        b_px >= min_minor
-        and 2 * a_px >= min_diam
-        and b_px >= min_ratio * a_px
-        and contrast > min_snr * noise
-        and best_margin >= min_conf
-        and best_margin * contrast >= min_margin_snr * noise
-        and (spread_hi - spread_lo) / scale <= max_spread
-        and best_thr > 0.1
-        and best_thr < 0.8
-        and level_max <= max_level
-        and code > 0
-    )
-    return good, code, roll, best_margin, roll_deg, disk_dn, bg
+    return True, code, roll, best_margin, roll_deg, disk_dn, bg
+
+
+@njit(cache=True, error_model="numpy")
+def _same_samples(e, f, r_max, tol_px):
+    """Whether the ellipses ``e`` and ``f`` place every sample point within ``r_max`` disk radii of
+    the centre less than ``tol_px`` apart: the centre's offset plus ``r_max`` times the largest
+    singular value of the difference of their affine maps bounds every point's offset."""
+    a00, a01, a10, a11 = _affine(e)
+    b00, b01, b10, b11 = _affine(f)
+    p, q, r, s = b00 - a00, b01 - a01, b10 - a10, b11 - a11
+    sigma = 0.5 * (np.hypot(p + s, q - r) + np.hypot(p - s, q + r))
+    return np.hypot(f[0] - e[0], f[1] - e[1]) + r_max * sigma <= tol_px
 
 
 @njit(cache=True, error_model="numpy")
@@ -451,7 +500,7 @@ def read_rings_kernel(
 
     ``bg`` (N,): the background DN, NaN to measure it in the gap. The pattern arrays are those of
     ``decode``; ``limits``: min_confidence, min_snr, min_minor_px, min_diameter_px, min_margin_snr,
-    MIN_AXIS_RATIO, MAX_GAP_SPREAD, MAX_SECTOR_LEVEL.
+    MIN_AXIS_RATIO, MAX_GAP_SPREAD, MAX_SECTOR_LEVEL, SAME_SAMPLES_PX.
 
     Returns
     -------
@@ -468,35 +517,25 @@ def read_rings_kernel(
     bits = np.zeros((n, K), dtype=np.bool_)
     levels = np.zeros((n, K))
     ellipse = e.copy()
-    scratch = np.empty(ring_pts.shape[0])
+    same_px = limits[8]
+    r_max = 0.0
+    for k in range(pts.shape[0]):
+        r_max = max(r_max, np.hypot(pts[k, 0], pts[k, 1]))
+    # scratch, once for all targets
+    scratch, work12 = np.empty(ring_pts.shape[0]), np.empty(12)
+    nd = dirs.shape[0]
+    refine_ws = np.empty(2 * refine_pts.shape[0] + 6 * nd)
+    found, ray = np.zeros(nd, dtype=np.bool_), np.empty((nd, 2))
+    G, g, row = np.empty((5, 5)), np.empty(5), np.empty(5)
+    read_ws = np.empty(read_scratch_size(pts.shape[0], n_disk, n_gap, K, S, run))
     fit = np.empty(5)
     lv0, lv1 = np.empty(K), np.empty(K)
     b0, b1 = np.zeros(K, dtype=np.bool_), np.zeros(K, dtype=np.bool_)
     for i in range(n):
-        if not todo[i] or not _may_have_ring(img, mode, e[i], ring_pts, scratch):
+        if not todo[i] or not _may_have_ring(img, mode, e[i], ring_pts, scratch, work12):
             continue
-        # read with the given ellipse and with its re-fit to the disk edge (see decode._read)
-        _refine(img, mode, e[i], rho, step, dirs, refine_pts, lo_index, lo_gamma, fit)
-        g0, c0, r0, m0, d0, disk0, bg0 = _read_ring(
-            img,
-            mode,
-            e[i],
-            bg[i],
-            pts,
-            n_disk,
-            n_gap,
-            n_radii,
-            K,
-            S,
-            core_a,
-            run,
-            code_of,
-            roll_of,
-            floor_dn,
-            limits,
-            lv0,
-            b0,
-        )
+        # read with the given ellipse and with its re-fit to the disk edge (step 2 of decode's docstring)
+        _refine(img, mode, e[i], rho, step, dirs, refine_pts, lo_index, lo_gamma, fit, refine_ws, found, ray, G, g, row)
         g1, c1, r1, m1, d1, disk1, bg1 = _read_ring(
             img,
             mode,
@@ -516,7 +555,33 @@ def read_rings_kernel(
             limits,
             lv1,
             b1,
+            read_ws,
         )
+        if _same_samples(e[i], fit, r_max, same_px):
+            # the two readings would sample the same points within a fraction of a pixel
+            g0, c0, r0, m0, d0, disk0, bg0 = False, 0, 0, -1.0, np.nan, np.nan, np.nan
+        else:
+            g0, c0, r0, m0, d0, disk0, bg0 = _read_ring(
+                img,
+                mode,
+                e[i],
+                bg[i],
+                pts,
+                n_disk,
+                n_gap,
+                n_radii,
+                K,
+                S,
+                core_a,
+                run,
+                code_of,
+                roll_of,
+                floor_dn,
+                limits,
+                lv0,
+                b0,
+                read_ws,
+            )
         if not (g0 or g1) or (g0 and g1 and c0 != c1):
             continue
         # of two agreeing readings, the one with the wider margin

@@ -100,6 +100,9 @@ MAX_GAP_SPREAD = 0.5
 # it: on MicMac's real AICON panel 1016 correct readings stayed below 1.2, while the one wrong
 # reading found there (a bright neighbour reaching into the ring zone) had sectors at 1.86.
 MAX_SECTOR_LEVEL = 1.5
+# The re-fit is read on its own when it places every sample point within this many px of the given
+# ellipse's (0: only when the two are the same ellipse, e.g. a re-fit that failed).
+SAME_SAMPLES_PX = 0.0
 
 
 @dataclass(frozen=True)
@@ -311,6 +314,7 @@ def read_codes(
             MIN_AXIS_RATIO,
             MAX_GAP_SPREAD,
             MAX_SECTOR_LEVEL,
+            SAME_SAMPLES_PX,
         ],
         dtype=np.float64,
     )
