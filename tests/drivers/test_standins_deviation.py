@@ -10,8 +10,9 @@ frames, in a band of 2σ·√2: two measurements are differenced); and its frame
 have been exposed when the service says (the camera pose in the image against the cell's true camera
 pose at the claimed exposure instant), where the circle's 190 mm/s turns 1 ms into 0.19 mm.
 
-The direct worker states its simulated controller's delivery delay (1 ms, ``drivers/robot/sim.py``)
-as an installation would; left at 0 it lags by that millisecond and its own deviation is 0.2 mm off.
+The runtime states each simulated controller's delivery delay (the stand-in's, and the direct one's
+1 ms of ``drivers/robot/sim.py``) as an installation states its controller's; left at 0 the direct
+worker lags by that millisecond and its own deviation is 0.2 mm off.
 """
 
 from __future__ import annotations
@@ -35,7 +36,6 @@ SETTLE_S = 8.0  # from the first paired stand-in frame: the clock mappings have 
 MIN_FRAMES = 40  # stand-in frames compared after settling (the median's own scatter: ~σ / 3)
 TIMEOUT_S = 60.0
 MAX_BRACKET_S = 1.0  # direct frames this close bracket a stand-in frame: interpolated within ~0.01 mm
-SIM_ROBOT_LATENCY_S = 0.001  # drivers.robot.sim.SimRobot's default delivery delay
 
 
 class _Results:
@@ -89,15 +89,9 @@ def _bracketed(t_s: np.ndarray, t_direct_s: np.ndarray) -> np.ndarray:
 def test_standins_deviation_matches_direct_mode_within_sigma(tmp_path: Path) -> None:
     workers = {}
     for mode in ("direct", "standins"):
-        # the stand-ins' latencies are stated by the runtime (service.runtime.cell_runtime), the direct one's here
-        latency = SIM_ROBOT_LATENCY_S if mode == "direct" else None
+        # both modes' latencies are stated by the runtime (service.runtime.cell_runtime)
         settings = load_settings(
-            None,
-            state_dir=tmp_path / mode,
-            sim__transport=mode,
-            sim__seed=0,
-            sim__program="circle",
-            robot__transport_latency_s=latency,
+            None, state_dir=tmp_path / mode, sim__transport=mode, sim__seed=0, sim__program="circle"
         )
         workers[mode] = Worker(settings, None)
     workers["standins"].cell.rtde_address = RTDE_ADDRESS
@@ -150,5 +144,23 @@ def test_standins_deviation_matches_direct_mode_within_sigma(tmp_path: Path) -> 
     assert abs(report["median_difference_mm"]) < 2 * np.sqrt(2) * sigma, report
     # frame by frame, against the cell's true deviation: within a millisecond (0.19 mm) even on a busy host
     assert report["p90_vector_error_standins_mm"] < 0.19, report
+    # and the direct worker too: without its controller's 1 ms stated it would be off by 0.19 mm
+    assert report["p90_vector_error_direct_mm"] < 0.19, report
     # the stand-in frames were exposed when the service says, within half a millisecond
     assert report["camera_p90_standins_mm"] < 0.1, report
+
+
+def test_the_runtime_states_the_simulated_controllers_own_delay():
+    import inspect
+
+    from drivers.robot.sim import SimRobot
+    from service.runtime import cell_runtime
+
+    assert inspect.signature(SimRobot).parameters["latency_s"].default == cell_runtime.SIM_ROBOT_LATENCY_S
+    settings = load_settings(None, sim__transport="direct")
+    runtime = cell_runtime.CellRuntime(settings)
+    runtime.start()
+    try:
+        assert settings.robot.transport_latency_s == cell_runtime.SIM_ROBOT_LATENCY_S
+    finally:
+        runtime.stop()
