@@ -13,17 +13,13 @@ forever; that too is counted.
 from __future__ import annotations
 
 import asyncio
-import json
 import time
 from dataclasses import dataclass, field
 from typing import Any
 
 from starlette.websockets import WebSocket
 
-
-def dumps(result: dict[str, Any]) -> str:
-    """A result as compact JSON text (the one encoding of the stream)."""
-    return json.dumps(result, separators=(",", ":"))
+from service.core.measurement import Measurement
 
 
 class StalledClient(Exception):
@@ -62,16 +58,15 @@ class Hub:
     def remove(self, client: Client) -> None:
         self.clients.discard(client)
 
-    def publish_threadsafe(self, result: dict[str, Any]) -> None:
+    def publish_threadsafe(self, result: Measurement) -> None:
         loop = self._loop
         if loop is None or loop.is_closed():
             return
-        text = dumps(result)
-        lite = text
-        if "targets" in result and any(not c.targets for c in list(self.clients)):
-            lite = dumps({k: v for k, v in result.items() if k != "targets"})
+        text = result.json  # encoded once for every client
+        lite = result.json_without_targets if any(not c.targets for c in list(self.clients)) else text
         # decimation runs on the exposure instant; an outage result has none: its publication then
-        meta = (result.get("camera"), int(result.get("t_exposure_host_ns") or time.monotonic_ns()))
+        t_ns = result.t_exposure_host_ns if result.t_exposure_host_ns is not None else time.monotonic_ns()
+        meta = (result.camera or None, t_ns)
         try:
             loop.call_soon_threadsafe(self._publish, (text, lite), meta)
         except RuntimeError:  # the loop closed between the check and the call (shutdown)

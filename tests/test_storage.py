@@ -18,34 +18,43 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.store.measurements import CSV_COLUMNS, SCHEMA_VERSION, MeasurementStore, StorageError, StoreFull
+from service.core.measurement import Deviation, Flange, Measurement
+from service.core.results import Failure, PoseResult, Reason, TargetObservation
+from service.store.measurements import MeasurementStore, StorageError, StoreFull
+from service.store.rows import CSV_COLUMNS, SCHEMA_VERSION
 
 REPO = Path(__file__).resolve().parents[1]
 T0 = datetime(2025, 3, 1, 12, 0, 0, tzinfo=UTC)
 
 
-def result(n: int, *, ok: bool = True, camera: str = "cam0", t_wall: datetime | None = None, **extra):
-    r = {"ok": ok, "n": n, "camera": camera}
-    if ok:
-        r.update(
-            {
-                "T_field_camera": [
-                    [1.0, 0.0, 0.0, 100.0 + n],
-                    [0.0, 1.0, 0.0, 2.0 * n],
-                    [0.0, 0.0, 1.0, 1500.0],
-                    [0.0, 0.0, 0.0, 1.0],
-                ],
-                "rms_px": 0.05,
-                "n_coded": 30,
-                "n_uncoded": 200,
-            }
+def result(
+    n: int,
+    *,
+    ok: bool = True,
+    camera: str = "cam0",
+    t_wall: datetime | None = None,
+    n_targets: int = 5,
+    rms_px: float = 0.05,
+    sigma_position_mm: np.ndarray | None = None,
+    t_host_ns: int | None = 1,
+    flange: Flange | None = None,
+) -> Measurement:
+    """A frame's measurement numbered ``seq = n``: a pose at x = 100 + n, y = 2n mm, or a failure."""
+    t = t_wall or datetime.now(UTC)
+    t_unix_ns = int(t.timestamp()) * 1_000_000_000 + t.microsecond * 1000
+    if not ok:
+        return Measurement(
+            camera, Failure(Reason.too_few_targets, "only 3 targets, at least 6 needed"), t_unix_ns, seq=n
         )
-    else:
-        r.update({"reason": "too_few_targets", "message": "only 3 targets, at least 6 needed"})
-    if t_wall is not None:
-        r["t_wall"] = t_wall.isoformat()
-    r.update(extra)
-    return r
+    T = np.eye(4)
+    T[:3, 3] = [100.0 + n, 2.0 * n, 1500.0]
+    targets = tuple(
+        TargetObservation(f"{'C' if k % 3 == 0 else 'U'}{k}", (10.0 * k, 5.0 * k), (0.01, -0.02), k % 3 == 0)
+        for k in range(n_targets)
+    )
+    sigma = np.full(3, 0.01) if sigma_position_mm is None else sigma_position_mm
+    pose = PoseResult(T, sigma, np.full(3, 0.001), rms_px, rms_px, targets)
+    return Measurement(camera, pose, t_unix_ns, t_host_ns, seq=n, flange=flange)
 
 
 @pytest.fixture
@@ -79,7 +88,7 @@ def test_rows_written_in_batches_are_all_readable_after_close(open_store, tmp_pa
     reopened = open_store(start=False)
     rows = reopened.measurements(limit=1000, oldest_first=True)
     assert [r["id"] for r in rows] == seqs  # the sequence number is the row id
-    assert [r["result"]["n"] for r in rows] == list(range(500))
+    assert [r["result"]["seq"] for r in rows] == list(range(500))
     assert reopened.count() == 500
     assert reopened.add_measurement(result(500)) == seqs[-1] + 1  # numbering continues across opens
 
@@ -110,22 +119,22 @@ def test_time_ok_camera_filters_and_paging(open_store):
     store.close()
 
     newest = store.measurements()
-    assert [r["result"]["n"] for r in newest] == list(range(39, -1, -1))  # newest first by default
+    assert [r["result"]["seq"] for r in newest] == list(range(39, -1, -1))  # newest first by default
 
     window = store.measurements(T0 + timedelta(minutes=10), T0 + timedelta(minutes=20), oldest_first=True)
-    assert [r["result"]["n"] for r in window] == list(range(10, 20))  # t_from inclusive, t_to exclusive
+    assert [r["result"]["seq"] for r in window] == list(range(10, 20))  # t_from inclusive, t_to exclusive
     assert store.count(T0 + timedelta(minutes=10), T0 + timedelta(minutes=20)) == 10
 
     failed = store.measurements(ok=False)
-    assert [r["result"]["n"] for r in failed] == list(range(36, -1, -4))
+    assert [r["result"]["seq"] for r in failed] == list(range(36, -1, -4))
     assert all(r["ok"] is False and r["reason"] == "too_few_targets" for r in failed)
     assert store.count(ok=True) == 30
 
     cam1 = store.measurements(camera="cam1", ok=True, oldest_first=True)
-    assert [r["result"]["n"] for r in cam1] == [n for n in range(40) if n % 2 == 1 and n % 4 != 0]
+    assert [r["result"]["seq"] for r in cam1] == [n for n in range(40) if n % 2 == 1 and n % 4 != 0]
 
     page = store.measurements(limit=5, offset=10, oldest_first=True)
-    assert [r["result"]["n"] for r in page] == list(range(10, 15))
+    assert [r["result"]["seq"] for r in page] == list(range(10, 15))
     assert store.measurements(limit=0) == []
 
     with pytest.raises(ValueError, match="time zone"):
@@ -138,14 +147,9 @@ def test_columns_are_taken_from_the_result(open_store):
     store = open_store()
     T_base_flange_measured = np.eye(4)
     T_base_flange_measured[:3, 3] = [400.0, -50.0, 300.0]
+    flange = Flange(None, T_base_flange_measured, Deviation(0.25, 0.02, np.array([0.25, 0.0, 0.0])))
     seq = store.add_measurement(
-        result(
-            1,
-            T_base_flange_measured=T_base_flange_measured,
-            t_host_ns=123_456_789,
-            deviation={"position_mm": 0.25, "angle_deg": 0.02},
-            sigma_position_mm=np.array([0.01, 0.01, 0.03]),
-        )
+        result(1, flange=flange, t_host_ns=123_456_789, n_targets=230, sigma_position_mm=np.array([0.01, 0.01, 0.03]))
     )
     assert store.wait_written(seq, timeout_s=5.0)
     (row,) = store.measurements()
@@ -161,10 +165,8 @@ def test_columns_are_taken_from_the_result(open_store):
     row = store.measurements(limit=1)[0]
     assert row["rms_px"] is None and row["result"]["sigma_position_mm"] == [0.01, None, 0.02]  # strict JSON
 
-    with pytest.raises(ValueError, match="'ok'"):
-        store.add_measurement({"rms_px": 0.1})
-    with pytest.raises(ValueError, match="time zone"):
-        store.add_measurement(result(2, t_wall=datetime(2025, 1, 1)))
+    with pytest.raises(TypeError, match="Measurement"):
+        store.add_measurement({"ok": True, "rms_px": 0.1})  # a dict's keys would be guessed at
 
 
 def test_csv_export_parses_back_with_the_csv_module(open_store):
@@ -198,7 +200,14 @@ def test_events_are_stored_and_filtered(open_store):
 KILL_CHILD = textwrap.dedent("""
     import sys, threading
     from pathlib import Path
+    import time
+    import numpy as np
+    from service.core.measurement import Measurement
+    from service.core.results import Failure, PoseResult, Reason
     from service.store.measurements import MeasurementStore
+
+    pose = PoseResult(np.eye(4), np.full(3, 0.01), np.full(3, 0.001), 0.05, 0.05, ())
+    failure = Failure(Reason.no_frame, "-")
 
     store = MeasurementStore(Path(sys.argv[1]), batch_max=32, flush_interval_s=0.01, synchronous=sys.argv[2])
     store.start()
@@ -206,7 +215,7 @@ KILL_CHILD = textwrap.dedent("""
     def background_load():  # keeps transactions in flight at the moment of the kill, backlog bounded
         k = 0
         while True:
-            seqs = [store.add_measurement({"ok": False, "reason": "no_frame", "background": k + i}) for i in range(50)]
+            seqs = [store.add_measurement(Measurement("bg", failure, time.time_ns(), seq=k + i)) for i in range(50)]
             k += 50
             store.wait_written(seqs[-1], 5.0)
 
@@ -215,7 +224,7 @@ KILL_CHILD = textwrap.dedent("""
     while True:
         block = []
         for _ in range(10):
-            block.append((store.add_measurement({"ok": True, "n": n, "camera": "cam0"}), n))
+            block.append((store.add_measurement(Measurement("cam0", pose, time.time_ns(), 1, seq=n)), n))
             n += 1
         if store.wait_written(block[-1][0], 5.0):
             # one write per block: lines reach the pipe whole (< PIPE_BUF) or not at all
@@ -260,7 +269,7 @@ def test_kill_9_mid_stream_loses_no_acknowledged_row_and_leaves_a_sound_database
 
     with sqlite3.connect(db) as conn:
         assert conn.execute("PRAGMA integrity_check").fetchall() == [("ok",)]
-        stored = dict(conn.execute("SELECT id, json_extract(result, '$.n') FROM measurements WHERE ok = 1"))
+        stored = dict(conn.execute("SELECT id, json_extract(result, '$.seq') FROM measurements WHERE ok = 1"))
         n_background = conn.execute("SELECT count(*) FROM measurements WHERE ok = 0").fetchone()[0]
     missing = {seq: n for seq, n in acknowledged.items() if stored.get(seq) != n}
     assert not missing, f"{len(missing)} of {len(acknowledged)} acknowledged rows lost"
@@ -287,7 +296,7 @@ def test_retention_deletes_old_rows_at_start_and_while_running(open_store, tmp_p
 
     store = open_store(retention_days=30.0, maintenance_interval_s=0.2)
     store.close()
-    assert sorted(r["result"]["n"] for r in store.measurements()) == [5, 6, 7]
+    assert sorted(r["result"]["seq"] for r in store.measurements()) == [5, 6, 7]
     assert store.stats()["retention_deleted"] == 5
 
     store = open_store(retention_days=30.0, maintenance_interval_s=0.2)
@@ -364,10 +373,9 @@ def test_disk_full_is_recorded_and_the_writer_recovers(open_store, tmp_path):
     with sqlite3.connect(tmp_path / "m.db") as conn:
         store.max_pages = conn.execute("PRAGMA page_count").fetchone()[0] + 4
     store.start()
-    pad = "x" * 3000
     acknowledged = []
     for n in range(40):
-        seq = store.add_measurement(result(n, pad=pad))
+        seq = store.add_measurement(result(n, n_targets=40))  # ~3 kB a row
         if not store.wait_written(seq, timeout_s=0.5):
             break
         acknowledged.append(seq)
@@ -400,4 +408,4 @@ def test_a_write_lock_held_by_another_connection_degrades_health_until_it_is_rel
         other.close()
     assert store.wait_written(seq, timeout_s=5.0)  # kept queued, written once the lock is gone
     assert store.health() == ("ok", "")
-    assert [r["result"]["n"] for r in store.measurements()] == [1]
+    assert [r["result"]["seq"] for r in store.measurements()] == [1]

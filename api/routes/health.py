@@ -24,8 +24,9 @@ def get_health(worker: WorkerDep, hub: HubDep) -> dict[str, Any]:
 def get_status(request: Request, worker: WorkerDep, hub: HubDep) -> dict[str, Any]:
     s = request.app.state.settings
     latest = {
-        name: {k: r.get(k) for k in ("ok", "reason", "mode", "t_wall", "rms_px", "n_coded", "n_uncoded", "deviation")}
+        name: {k: d.get(k) for k in ("ok", "reason", "mode", "t_wall", "rms_px", "n_coded", "n_uncoded", "deviation")}
         for name, r in list(worker.latest.items())
+        for d in (r.to_dict(targets=False),)
     }
     return {
         **get_health(worker, hub),

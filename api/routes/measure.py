@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from api.deps import WorkerDep
 from api.errors import STATUS, ApiError
 from api.security import Authorized
-from api.ws import StalledClient, dumps
+from api.ws import StalledClient
 from service.core.results import Reason
 from service.workflows.annotate import encode_frame
 
@@ -55,20 +55,20 @@ async def post_measure(worker: WorkerDep, request: MeasureRequest | None = None)
     except TimeoutError:
         fut.cancel()
         raise ApiError(Reason.timeout, f"no frame was measured within {req.timeout_s} s; see /health") from None
-    result: dict[str, Any] = answer.result
-    if not result.get("ok") and result.get("reason") in _DEVICE_REASONS:
+    result = answer.result
+    if not result.ok and result.reason in _DEVICE_REASONS:
         # the cell could not measure at all: an HTTP error status, with the same result body
-        return JSONResponse(result, status_code=_STATUS[result["reason"]])
+        return JSONResponse(result.to_dict(), status_code=_STATUS[result.reason])
     stored, why = await asyncio.to_thread(worker.wait_stored, answer, deadline - time.monotonic())
     if not stored:
         raise ApiError(
             Reason.storage_unavailable,
             why,
             status=_STATUS[Reason.storage_unavailable],
-            camera=result.get("camera"),
-            t_exposure_host_ns=result.get("t_exposure_host_ns"),
+            camera=result.camera,
+            t_exposure_host_ns=result.t_exposure_host_ns,
         )
-    return {**result, "measurement_id": answer.stored_seq}
+    return JSONResponse({**result.to_dict(), "measurement_id": answer.stored_seq})
 
 
 @router.get(
@@ -86,9 +86,8 @@ def get_latest(worker: WorkerDep, camera: str | None = None) -> Any:
     result = worker.current(camera)
     if result is None:
         raise ApiError(Reason.no_frame, "no frame has been measured yet; see /health")
-    if not result.get("ok") and result.get("reason") in _DEVICE_REASONS:
-        return JSONResponse(result, status_code=_STATUS[result["reason"]])
-    return result
+    status = _STATUS[result.reason] if not result.ok and result.reason in _DEVICE_REASONS else 200
+    return JSONResponse(result.to_dict(), status_code=status)
 
 
 @router.get(
@@ -109,7 +108,7 @@ def get_frame(
     if name is None or name not in worker.latest_frame:
         raise ApiError(Reason.no_frame, "no frame has arrived yet; see /health")
     frame, result = worker.latest_frame[name]
-    data, media = encode_frame(frame.image, result if annotate else None, format, max_width)
+    data, media = encode_frame(frame.image, result.to_dict() if annotate else None, format, max_width)
     return Response(data, media_type=media, headers={"Cache-Control": "no-store"})
 
 
@@ -132,7 +131,7 @@ async def ws_poses(
     try:
         current = worker.current(camera)
         if current is not None:
-            await hub.send(websocket, client, dumps({k: v for k, v in current.items() if targets or k != "targets"}))
+            await hub.send(websocket, client, current.json if targets else current.json_without_targets)
         while True:
             text = await client.queue.get()
             await hub.send(websocket, client, text)

@@ -8,13 +8,14 @@ exposure is the robot's error there. One place for both, for a single camera and
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from service.core.geometry.frames import inv_T, pose_difference
+from service.core.measurement import Deviation, Flange
+from service.core.results import Reason
 
 Array = NDArray[np.float64]
 
@@ -22,22 +23,6 @@ Array = NDArray[np.float64]
 class HandEye(Protocol):
     T_flange_camera: Array  # X, mm
     T_base_field: Array  # Z, mm
-
-
-@dataclass(frozen=True)
-class Deviation:
-    """Measured minus reported flange pose: distance mm, angle deg, and the position vector mm (base)."""
-
-    position_mm: float
-    angle_deg: float
-    vector_mm: Array
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "position_mm": round(self.position_mm, 4),
-            "angle_deg": round(self.angle_deg, 5),
-            "vector_mm": [round(float(v), 4) for v in self.vector_mm],
-        }
 
 
 def flange_from_camera(handeye: HandEye, T_field_camera: Array) -> Array:
@@ -51,3 +36,25 @@ def deviation(T_base_flange_measured: Array, T_base_flange_reported: Array) -> D
     T_rep = np.asarray(T_base_flange_reported, dtype=np.float64)
     dpos, dang = pose_difference(T_meas, T_rep)
     return Deviation(float(dpos), float(dang), T_meas[:3, 3] - T_rep[:3, 3])
+
+
+NO_HANDEYE = "no hand-eye calibration: the flange pose cannot be measured"
+
+
+def flange_part(
+    handeye: HandEye | None,
+    T_field_camera: Array,
+    T_base_flange_reported: Array | None,
+    why_unreported: str = "no robot pose at the exposure",
+) -> Flange:
+    """The robot's part of one pose; what is missing says why (the robot's reason first)."""
+    reason, message = None, ""
+    if T_base_flange_reported is None:
+        reason, message = Reason.robot_disconnected, why_unreported
+    elif handeye is None:
+        reason, message = Reason.not_calibrated, NO_HANDEYE
+    if handeye is None:
+        return Flange(T_base_flange_reported, None, None, reason or Reason.not_calibrated, message or NO_HANDEYE)
+    T_measured = flange_from_camera(handeye, T_field_camera)
+    dev = None if T_base_flange_reported is None else deviation(T_measured, T_base_flange_reported)
+    return Flange(T_base_flange_reported, T_measured, dev, reason, message)

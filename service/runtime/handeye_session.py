@@ -30,7 +30,8 @@ from service.core.calib.handeye_images import ImageSample, refine_handeye_on_ima
 from service.core.calib.handeye_plan import flange_poses_for_views, propose_views
 from service.core.geometry.camera_model import BrownFraser
 from service.core.geometry.frames import orientation_report, ur_pose_from_T
-from service.core.results import Reason, SolveError
+from service.core.measurement import iso_wall
+from service.core.results import Failure, PoseResult, Reason, SolveError
 from service.core.targets.field import Field
 
 STILL_WINDOW_S = 0.3
@@ -97,18 +98,19 @@ class HandEyeSession:
         if cal.camera is None or cal.field is None:
             raise SessionError(Reason.not_calibrated, "a camera and a field calibration are needed first")
         latest = worker.latest.get(camera)
-        if not latest or not latest.get("ok") or latest.get("T_base_flange") is None:
+        reported = latest.flange.T_base_flange if latest is not None and latest.flange is not None else None
+        if latest is None or not latest.ok or latest.T_field_camera is None or reported is None:
             raise SessionError(
                 Reason.too_few_targets,
                 "the camera must see the field and the robot must be connected: no measured, paired pose yet",
             )
         X_guess = cal.handeye.T_flange_camera if cal.handeye is not None else np.eye(4)
-        T_fc = np.asarray(latest["T_field_camera"])
+        T_fc = latest.T_field_camera
         try:
             views = propose_views(cal.camera, cal.field, T_fc, n=n_poses)
         except SolveError as e:
             raise SessionError(e.reason, e.message) from None
-        poses = flange_poses_for_views(views, np.asarray(latest["T_base_flange"]), T_fc, X_guess)
+        poses = flange_poses_for_views(views, reported, T_fc, X_guess)
         return cls(camera=camera, proposals=poses, X_guess=X_guess)
 
     # --- 2. record ----------------------------------------------------------------------------
@@ -129,24 +131,25 @@ class HandEyeSession:
                     Reason.robot_moving,
                     f"the robot moved {spread_mm:.2f} mm in the last {STILL_WINDOW_S} s; record samples at rest",
                 )
-        result = worker.request_measurement(self.camera).result(timeout=timeout_s).result
-        if not result.get("ok"):
-            raise SessionError(
-                Reason(result.get("reason", Reason.no_frame)), result.get("message", "the frame was not measured")
-            )
-        if result.get("T_base_flange") is None:
-            raise SessionError(Reason.robot_disconnected, result.get("flange_message", "no robot pose at the frame"))
+        m = worker.request_measurement(self.camera).result(timeout=timeout_s).result
+        if not m.ok or isinstance(m.result, Failure):
+            raise SessionError(m.reason or Reason.no_frame, m.message or "the frame was not measured")
+        if m.flange is None or m.flange.T_base_flange is None:
+            why = m.flange.message if m.flange is not None else "no robot pose at the frame"
+            raise SessionError(Reason.robot_disconnected, why)
+        pose = m.result
+        used = [t for t in pose.targets if t.used] if isinstance(pose, PoseResult) else []
         sample = Sample(
-            T_base_flange=np.asarray(result["T_base_flange"]),
-            T_field_camera=np.asarray(result["T_field_camera"]),
-            sigma_position_mm=list(result["sigma_position_mm"]),
-            sigma_rotation_deg=list(result["sigma_rotation_deg"]),
-            rms_px=float(result["rms_px"]),
-            n_targets=int(result["n_coded"]) + int(result["n_uncoded"]),
-            t_wall=result["t_wall"],
+            T_base_flange=m.flange.T_base_flange,
+            T_field_camera=pose.T_field_camera,
+            sigma_position_mm=[float(v) for v in pose.sigma_position_mm],
+            sigma_rotation_deg=[float(v) for v in pose.sigma_rotation_deg],
+            rms_px=float(pose.rms_px),
+            n_targets=pose.n_coded + pose.n_uncoded,
+            t_wall=iso_wall(m.t_unix_ns),
             camera=self.camera,
-            ids=[t["id"] for t in result.get("targets", []) if not t.get("rejected")],
-            uv=np.array([t["uv"] for t in result.get("targets", []) if not t.get("rejected")]).reshape(-1, 2),
+            ids=[t.id for t in used],
+            uv=np.array([t.uv for t in used]).reshape(-1, 2),
         )
         with self.lock:
             self.samples.append(sample)

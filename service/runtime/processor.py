@@ -1,4 +1,4 @@
-"""One camera's processing: frame + robot history → the result of DESIGN section 4, as a dict.
+"""One camera's processing: frame + robot history → its :class:`~service.core.measurement.Measurement`.
 
 The pose comes from ``service.pipeline.measure.FrameMeasurer`` (ROI tracking with a
 full-frame fall-back). Then the flange:
@@ -19,16 +19,18 @@ import threading
 import time
 from collections import deque
 from dataclasses import replace
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
 from drivers.base import Frame, RobotDriver
+from service.core.measurement import Flange, Measurement
 from service.core.pose.timesync import TimeOffsetFit, estimate_time_offset_s
 from service.core.results import Failure, PoseResult, Reason
 from service.core.targets.codes import FAMILIES
 from service.core.targets.detect import DetectSettings
-from service.pipeline.flange import deviation, flange_from_camera
+from service.pipeline.flange import flange_part
 from service.pipeline.measure import FrameMeasurer, MeasureSettings
 from service.runtime.acquisition import DeviceState
 from service.runtime.calibration_state import CalibrationState
@@ -52,15 +54,6 @@ def measure_settings(p: ProcessingConfig) -> MeasureSettings:
         roi=p.roi_tracking,
         code_family=FAMILIES[p.code_family],
     )
-
-
-def _wall(t_ns_since_epoch: int) -> str:
-    secs, ns = divmod(t_ns_since_epoch, 1_000_000_000)
-    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(secs)) + f".{ns // 1_000_000:03d}Z"
-
-
-def _round_T(T: np.ndarray) -> list[list[float]]:
-    return [[round(float(v), 9) for v in row] for row in T]
 
 
 class CameraProcessor:
@@ -100,74 +93,60 @@ class CameraProcessor:
                 self._measurer = FrameMeasurer(cal.camera, cal.field, measure_settings(self.settings.processing))
         return self._measurer
 
-    def process(self, frame: Frame, robot: RobotDriver | None, robot_state: DeviceState) -> dict[str, Any]:
+    def process(self, frame: Frame, robot: RobotDriver | None, robot_state: DeviceState) -> Measurement:
         t0 = time.perf_counter()
         t_exposure_ns, source = self.pairer.exposure_instant_ns(frame)
-        head: dict[str, Any] = {
+        head = {
             "camera": self.name,
             "seq": frame.seq,
             "t_exposure_host_ns": t_exposure_ns,
-            "t_exposure_unix_ns": t_exposure_ns + self._wall_minus_mono_ns,  # a client can measure latency
-            "t_wall": _wall(t_exposure_ns + self._wall_minus_mono_ns),
+            "t_unix_ns": t_exposure_ns + self._wall_minus_mono_ns,
             "exposure_source": source,
         }
         measurer = self._current_measurer()
         if measurer is None:
             missing = [k for k in ("camera", "field") if getattr(self.calibration, k) is None]
             fail = Failure(Reason.not_calibrated, f"no {' and no '.join(missing)} calibration is loaded")
-            return {**fail.to_dict(), **head}
+            return Measurement(result=fail, **head)
         if frame.image.ndim != 2 or frame.image.size == 0:
             fail = Failure(Reason.bad_image, f"frame of shape {frame.image.shape} is not a grey image")
-            return {**fail.to_dict(), **head}
+            return Measurement(result=fail, **head)
         outcome = measurer.measure(frame.image, t_exposure_ns * 1e-9)
         result = outcome.result
-        out: dict[str, Any] = {**result.to_dict(), **head, "mode": outcome.mode}
-        timings = {k: round(v, 3) for k, v in outcome.timings_ms.items()}
+        flange = None
         if isinstance(result, PoseResult):
-            self._add_flange(out, result, frame, t_exposure_ns, robot, robot_state)
-        timings["processing"] = round((time.perf_counter() - t0) * 1e3, 3)
-        timings["latency"] = round((time.monotonic_ns() - t_exposure_ns) * 1e-6, 3)
-        out["timings_ms"] = timings
-        if "T_field_camera" in frame.meta:  # simulation: the truth travels with the frame
-            out["truth"] = {"T_field_camera": frame.meta["T_field_camera"]}
-        return out
+            flange = self._flange(result, frame, t_exposure_ns, robot, robot_state)
+        timings = dict(outcome.timings_ms)
+        timings["processing"] = (time.perf_counter() - t0) * 1e3
+        timings["latency"] = (time.monotonic_ns() - t_exposure_ns) * 1e-6
+        truth = frame.meta.get("T_field_camera")  # simulation: the truth travels with the frame
+        return Measurement(
+            result=result,
+            mode=outcome.mode,
+            timings_ms=MappingProxyType(timings),
+            flange=flange,
+            T_field_camera_true=None if truth is None else np.asarray(truth, dtype=np.float64),
+            **head,
+        )
 
-    def _add_flange(
-        self,
-        out: dict[str, Any],
-        result: PoseResult,
-        frame: Frame,
-        t_exposure_ns: int,
-        robot: RobotDriver | None,
-        robot_state: DeviceState,
-    ) -> None:
-        out["T_base_flange"] = None
-        out["T_base_flange_measured"] = None
-        out["deviation"] = None
-        T_reported = None
+    def _flange(
+        self, result: PoseResult, frame: Frame, t_exposure_ns: int, robot: RobotDriver | None, robot_state: DeviceState
+    ) -> Flange:
+        T_reported, why = None, ""
         if robot is None or robot_state is DeviceState.absent:
-            out["flange_reason"], out["flange_message"] = "robot_disconnected", "no robot is configured"
+            why = "no robot is configured"
         elif robot_state is not DeviceState.ok:
-            out["flange_reason"], out["flange_message"] = "robot_disconnected", f"the robot is {robot_state}"
+            why = f"the robot is {robot_state}"
         else:
             pairing = self.pairer.pair(frame, robot.history)
-            T_reported = pairing.T_base_flange
-            if T_reported is None:
-                out["flange_reason"], out["flange_message"] = "robot_disconnected", pairing.reason
-            else:
-                out["T_base_flange"] = _round_T(T_reported)
-        he = self.calibration.handeye
-        if he is None:
-            out.setdefault("flange_reason", "not_calibrated")
-            out.setdefault("flange_message", "no hand-eye calibration: the flange pose cannot be measured")
-            return
-        T_measured = flange_from_camera(he, result.T_field_camera)
-        out["T_base_flange_measured"] = _round_T(T_measured)
-        if T_reported is not None:
-            out["deviation"] = deviation(T_measured, T_reported).to_dict()
+            T_reported, why = pairing.T_base_flange, pairing.reason
+        flange = flange_part(self.calibration.handeye, result.T_field_camera, T_reported, why)
+        if flange.deviation is not None and T_reported is not None and flange.T_base_flange_measured is not None:
             with self._motion_lock:
-                self._motion.append((t_exposure_ns * 1e-9, T_measured[:3, 3].copy(), T_reported[:3, 3].copy()))
+                p_measured = flange.T_base_flange_measured[:3, 3].copy()
+                self._motion.append((t_exposure_ns * 1e-9, p_measured, T_reported[:3, 3].copy()))
                 self._n_since_offset += 1
+        return flange
 
     def time_offset_report(self) -> dict[str, Any] | None:
         """The residual latency seen in the motion: frame times are late by ``offset_ms``."""

@@ -10,8 +10,9 @@ Threads (one owner per device, python-can / Opentrons style):
   full frame on loss) and publishes the result to subscribers (the API's
   WebSocket fan-out), to waiting triggered requests and to the store.
 
-Nothing here raises on bad data: every frame gives a result dict, with
-``"ok": false`` and a ``reason`` when it could not be measured.
+Nothing here raises on bad data: every frame gives a
+:class:`~service.core.measurement.Measurement`, a failure with a ``reason`` when it
+could not be measured; the same frozen object goes to every consumer.
 
 What a client sees during a fault. A camera that is disconnected, failed or
 stalled gets an outage result (``"ok": false``, ``camera_disconnected``) at
@@ -39,6 +40,7 @@ import numpy as np
 
 from drivers.base import DriverError, Frame, RobotDriver
 from drivers.registry import make_camera, make_robot
+from service.core.measurement import Measurement
 from service.core.results import Failure, Reason
 from service.runtime.acquisition import CameraChannel, DeviceState
 from service.runtime.calibration_state import CalibrationState
@@ -51,7 +53,7 @@ from service.store.measurements import StorageError
 
 log = logging.getLogger(__name__)
 
-Subscriber = Callable[[dict[str, Any]], None]
+Subscriber = Callable[[Measurement], None]
 
 RECONNECT_MAX_S = 1.0  # longest wait between reconnection attempts: a device is back within ~1 s of return
 OUTAGE_REPEAT_S = 1.0  # an outage result is repeated this often while a camera is down
@@ -64,7 +66,7 @@ FAULT_ACTIONS = {"camera": ("unplug", "plug", "stall", "garble"), "robot": ("unp
 class Answer:
     """A triggered measurement: its result, and the store's sequence number of its row (None: not queued)."""
 
-    result: dict[str, Any]
+    result: Measurement
     stored_seq: int | None = None
     storage_error: str = ""
 
@@ -95,12 +97,12 @@ class Worker:
         self._subscribers: list[Subscriber] = []
         self._waiters: list[tuple[str | None, int, concurrent.futures.Future[Answer]]] = []
         self._lock = threading.Lock()
-        self.latest: dict[str, dict[str, Any]] = {}
+        self.latest: dict[str, Measurement] = {}
         # per camera: host ns the newest result's data is from (its exposure; an outage result: its
         # publication) and whether it is an outage notice
         self._latest_t_ns: dict[str, tuple[int, bool]] = {}
         self._outage_published_ns: dict[str, tuple[str, int]] = {}
-        self.latest_frame: dict[str, tuple[Frame, dict[str, Any]]] = {}
+        self.latest_frame: dict[str, tuple[Frame, Measurement]] = {}
         self._latency_ms: deque[float] = deque(maxlen=200)
         self._processing_ms: deque[float] = deque(maxlen=200)
         self.counters = {
@@ -155,7 +157,7 @@ class Worker:
         with self._lock:
             for _, _, fut in self._waiters:
                 if not fut.done():
-                    fut.set_result(Answer(Failure(Reason.no_frame, "the service is shutting down").to_dict()))
+                    fut.set_result(Answer(self._failure(None, Reason.no_frame, "the service is shutting down")))
             self._waiters.clear()
 
     def _add_camera(self, cfg: CameraConfig) -> None:
@@ -289,7 +291,7 @@ class Worker:
             "when the database accepts writes again)"
         )
 
-    def _camera_unavailable(self, name: str) -> dict[str, Any] | None:
+    def _camera_unavailable(self, name: str) -> Measurement | None:
         ch = self.cameras.get(name)
         if ch is None:
             return self._failure(name, Reason.camera_disconnected, self.processors[name].failed_reason)
@@ -299,10 +301,9 @@ class Worker:
             return None  # it may come up within the caller's timeout
         return self._failure(name, Reason.camera_disconnected, ch.last_error or f"camera {name} is {ch.state}")
 
-    def _failure(self, camera: str, reason: Reason, message: str) -> dict[str, Any]:
-        d = Failure(reason, message).to_dict()
-        d.update(camera=camera, t_wall=_wall_now())
-        return d
+    def _failure(self, camera: str | None, reason: Reason, message: str, state: str | None = None) -> Measurement:
+        """A result without a frame (an outage, a shutdown): stamped now."""
+        return Measurement(camera or "", Failure(reason, message), time.time_ns(), camera_state=state)
 
     # --- fault injection (the simulated cell only) -----------------------------------------------
 
@@ -392,30 +393,29 @@ class Worker:
             if last is not None and last[0] == state and now - last[1] < OUTAGE_REPEAT_S * 1e9:
                 continue
             self._outage_published_ns[name] = (state, now)
-            result = self._failure(name, Reason.camera_disconnected, error)
-            result["camera_state"] = state
+            result = self._failure(name, Reason.camera_disconnected, error, state)
             self.counters["outage_results"] += 1
             self._publish(name, result, None)
 
     def _rig_active(self) -> bool:
         return len(self.cameras) >= 2 and self.calibration.rig is not None
 
-    def _publish(self, name: str, result: dict[str, Any], frame: Frame | None) -> None:
+    def _publish(self, name: str, result: Measurement, frame: Frame | None) -> None:
         """Hand one result to waiting requests, the store and the subscribers (``frame`` None: an outage)."""
         c = self.counters
         now = time.monotonic_ns()
         if frame is not None:
             c["results"] += 1
-            c["ok" if result.get("ok") else "failed"] += 1
-            if result.get("mode") in ("roi", "full"):
-                c[result["mode"]] += 1
-            timings = result.get("timings_ms", {})
+            c["ok" if result.ok else "failed"] += 1
+            if result.mode in ("roi", "full"):
+                c[result.mode] += 1
+            timings = result.timings_ms
             if "latency" in timings:
                 self._latency_ms.append(timings["latency"])
             if "processing" in timings:
                 self._processing_ms.append(timings["processing"])
             self.latest_frame[name] = (frame, result)
-            t_data = int(result.get("t_exposure_host_ns", frame.t_host_ns))
+            t_data = result.t_exposure_host_ns if result.t_exposure_host_ns is not None else frame.t_host_ns
         else:
             t_data = now
         with self._lock:
@@ -447,12 +447,12 @@ class Worker:
         every_ns = self.settings.storage.stream_every_s * 1e9
         return self.store is not None and frame.t_host_ns - self._last_stored_ns >= every_ns
 
-    def _store(self, result: dict[str, Any], triggered: bool) -> Answer:
+    def _store(self, result: Measurement, triggered: bool) -> Answer:
         if self.store is None:
             return Answer(result)
         self._last_stored_ns = time.monotonic_ns()
         try:
-            seq = int(self.store.add_measurement({**result, "triggered": triggered}))
+            seq = int(self.store.add_measurement(result, triggered=triggered))
         except (StorageError, ValueError, TypeError) as e:  # a full queue (disk far behind), a closed store
             self.counters["not_stored"] += 1
             log.warning("measurement not stored: %s", e)
@@ -467,12 +467,12 @@ class Worker:
         rates = [c.frame_rate_hz for c in self.settings.cameras if name in (c.name, RIG) and c.frame_rate_hz]
         return max(STALE_MIN_S, STALE_PERIODS / min(rates)) if rates else STALE_MIN_S
 
-    def current(self, camera: str | None = None) -> dict[str, Any] | None:
-        """The newest result of ``camera`` (or the newest of all), with ``age_s`` and ``stale``.
+    def current(self, camera: str | None = None) -> Measurement | None:
+        """The newest result of ``camera`` (or the newest of all), served with its ``age_s``.
 
-        A result older than :meth:`stale_after_s` is a copy with ``"ok": false``, ``"reason": "stale"``,
-        a sentence and the measured values kept for diagnosis (``"measured_reason"`` if it had one);
-        an outage result is always current (it says what is wrong now).
+        A result older than :meth:`stale_after_s` is served :meth:`~Measurement.as_stale` (``ok``
+        false, reason ``stale``, a sentence, the measured values kept for diagnosis); an outage
+        result is always current (it says what is wrong now).
         """
         with self._lock:
             entries = [(n, r, *self._latest_t_ns[n]) for n, r in self.latest.items() if camera in (None, n)]
@@ -480,20 +480,11 @@ class Worker:
             return None
         name, result, t_data_ns, is_outage = max(entries, key=lambda e: e[2])
         age_s = max(0.0, (time.monotonic_ns() - t_data_ns) * 1e-9)
-        out = {**result, "age_s": round(age_s, 3), "stale": False}
         if is_outage or age_s <= self.stale_after_s(name):
-            return out
+            return result.served(age_s)
         outage = self._camera_outage(name) if name in self.processors else None
         why = f": {outage[1]}" if outage else ""
-        out.update(
-            ok=False,
-            reason=str(Reason.stale),
-            stale=True,
-            message=f"the newest result of {name} is {age_s:.1f} s old, no longer current{why}",
-        )
-        if result.get("reason"):
-            out["measured_reason"] = result["reason"]
-        return out
+        return result.as_stale(age_s, f"the newest result of {name} is {age_s:.1f} s old, no longer current{why}")
 
     # --- reports ---------------------------------------------------------------------------------
 
@@ -549,7 +540,3 @@ class Worker:
 
 def _median(values: deque[float]) -> float | None:
     return round(float(np.median(list(values))), 3) if values else None
-
-
-def _wall_now() -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime()) + f".{int(time.time() * 1000) % 1000:03d}Z"

@@ -40,37 +40,31 @@ import sqlite3
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any, Literal
 
-from service.store.formats import null_for_unknown
+from service.core.measurement import Measurement
+from service.store.rows import (
+    CSV_COLUMNS,
+    EVENT_LEVELS,
+    INSERT_EVENT,
+    INSERT_MEASUREMENT,
+    MIGRATIONS,
+    ROW_COLUMNS,
+    SCHEMA_VERSION,
+    check_page,
+    event_row,
+    iso_utc,
+    measurement_row,
+    where_clause,
+)
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CSV_COLUMNS", "EVENT_LEVELS", "SCHEMA_VERSION", "MeasurementStore", "StorageError", "StoreFull", "iso_utc"]
+__all__ = ["MeasurementStore", "StorageError", "StoreFull"]
 
-EVENT_LEVELS = ("debug", "info", "warning", "error")
-# measurement columns besides the whole result's JSON; also the CSV export's columns
-CSV_COLUMNS = (
-    "id",
-    "t_wall",
-    "t_host_ns",
-    "camera",
-    "ok",
-    "reason",
-    "message",
-    "pose_of",
-    "x_mm",
-    "y_mm",
-    "z_mm",
-    "deviation_position_mm",
-    "deviation_angle_deg",
-    "rms_px",
-    "n_targets",
-)
-_ROW_COLUMNS = tuple(c for c in CSV_COLUMNS if c != "message")
 _RETENTION_CHUNK = 10_000
 _RETENTION_MAX_CHUNKS = 20  # per run, so queued rows never wait long behind a purge
 _RETRY_MAX_S = 1.0
@@ -88,156 +82,6 @@ class StorageError(Exception):
 
 class StoreFull(StorageError):
     """The write queue is full: the row was not accepted and will not be stored."""
-
-
-# ---------------------------------------------------------------- schema and migrations
-
-
-def _migrate_to_v1(conn: sqlite3.Connection) -> None:
-    conn.execute("""CREATE TABLE measurements (
-        id INTEGER PRIMARY KEY AUTOINCREMENT,
-        t_wall TEXT NOT NULL,       -- ISO 8601 UTC, fixed width: sorts as text
-        t_host_ns INTEGER,          -- time.monotonic_ns() of the frame (host clock)
-        camera TEXT, ok INTEGER NOT NULL, reason TEXT,
-        pose_of TEXT,               -- what x/y/z_mm are: base_flange_measured or field_camera
-        x_mm REAL, y_mm REAL, z_mm REAL,
-        deviation_position_mm REAL, deviation_angle_deg REAL, rms_px REAL, n_targets INTEGER,
-        result TEXT NOT NULL        -- the whole result, JSON
-    )""")
-    conn.execute("CREATE INDEX measurements_t_wall ON measurements (t_wall)")
-    conn.execute("""CREATE TABLE events (
-        id INTEGER PRIMARY KEY AUTOINCREMENT, t_wall TEXT NOT NULL, level TEXT NOT NULL,
-        kind TEXT NOT NULL, message TEXT NOT NULL, details TEXT  -- JSON object or NULL
-    )""")
-    conn.execute("CREATE INDEX events_t_wall ON events (t_wall)")
-
-
-# _MIGRATIONS[n] brings a database from user_version n to n + 1; append, never edit.
-_MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migrate_to_v1,)
-SCHEMA_VERSION = len(_MIGRATIONS)
-
-
-# ---------------------------------------------------------------- row conversion
-
-
-def iso_utc(t: datetime) -> str:
-    """Fixed-width ISO 8601 UTC text that sorts like the time.
-
-    >>> iso_utc(datetime.fromisoformat("2025-01-02T04:04:05.000006+01:00"))
-    '2025-01-02T03:04:05.000006Z'
-    """
-    if t.tzinfo is None:
-        raise ValueError(f"datetime {t.isoformat()} has no time zone: give an aware datetime (e.g. UTC)")
-    return t.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
-
-
-def _t_wall_of(value: Any) -> str:
-    if value is None:
-        return iso_utc(datetime.now(UTC))
-    if isinstance(value, str):
-        try:
-            value = datetime.fromisoformat(value)
-        except ValueError:
-            raise ValueError(f"t_wall {value!r} is not an ISO 8601 time") from None
-    if not isinstance(value, datetime):
-        raise ValueError(f"t_wall must be an ISO 8601 string or an aware datetime, not {type(value).__name__}")
-    return iso_utc(value)
-
-
-def _json_default(o: Any) -> Any:
-    if hasattr(o, "tolist"):  # numpy arrays and scalars, without importing numpy
-        return o.tolist()
-    if isinstance(o, datetime):
-        return iso_utc(o)
-    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
-
-
-def _dumps(obj: Any) -> str:
-    """Compact strict JSON; NaN and infinities (no JSON for them) become null."""
-    try:
-        return json.dumps(obj, default=_json_default, separators=(",", ":"), allow_nan=False)
-    except ValueError:  # rare: only then pay for the walk
-        return json.dumps(null_for_unknown(obj), default=_json_default, separators=(",", ":"), allow_nan=False)
-
-
-def _real(x: Any) -> float | None:
-    if x is None:
-        return None
-    v = float(x)
-    return v if math.isfinite(v) else None
-
-
-def _pose_columns(result: Mapping[str, Any]) -> tuple[str | None, float | None, float | None, float | None]:
-    # the flange in base when hand-eye calibrated, else the camera in the field; pose_of says which
-    for key, name in (("T_base_flange_measured", "base_flange_measured"), ("T_field_camera", "field_camera")):
-        T = result.get(key)
-        if T is not None:
-            try:
-                return name, _real(T[0][3]), _real(T[1][3]), _real(T[2][3])
-            except (TypeError, IndexError, KeyError, ValueError):
-                raise ValueError(f"result[{key!r}] is not a 4x4 matrix") from None
-    return None, None, None, None
-
-
-def _measurement_row(result: Mapping[str, Any]) -> tuple[Any, ...]:
-    """Column values (without id) of one result; raises ValueError/TypeError on bad input."""
-    if not isinstance(result, Mapping):
-        raise TypeError(f"a measurement result must be a dict, not {type(result).__name__}")
-    if "ok" not in result:
-        raise ValueError("a measurement result must carry 'ok' (DESIGN section 4)")
-    n_targets = result.get("n_targets")
-    if n_targets is None and result.get("n_coded") is not None and result.get("n_uncoded") is not None:
-        n_targets = int(result["n_coded"]) + int(result["n_uncoded"])
-    dev_pos, dev_ang = result.get("deviation_position_mm"), result.get("deviation_angle_deg")
-    if isinstance(dev := result.get("deviation"), Mapping):
-        dev_pos, dev_ang = dev.get("position_mm", dev_pos), dev.get("angle_deg", dev_ang)
-    t_host_ns = result.get("t_host_ns", result.get("t_exposure_host_ns"))  # the worker's name: the exposure
-    camera, reason = result.get("camera"), result.get("reason")
-    return (
-        _t_wall_of(result.get("t_wall")),
-        None if t_host_ns is None else int(t_host_ns),
-        None if camera is None else str(camera),
-        1 if result["ok"] else 0,
-        None if reason is None else str(reason),
-        *_pose_columns(result),
-        _real(dev_pos),
-        _real(dev_ang),
-        _real(result.get("rms_px")),
-        None if n_targets is None else int(n_targets),
-        _dumps(result),
-    )
-
-
-def _event_row(kind: str, message: str, level: str, details: Mapping[str, Any] | None) -> tuple[Any, ...]:
-    if level not in EVENT_LEVELS:
-        raise ValueError(f"event level {level!r} is not one of {', '.join(EVENT_LEVELS)}")
-    if details is not None and not isinstance(details, Mapping):
-        raise TypeError(f"event details must be a dict or None, not {type(details).__name__}")
-    return (iso_utc(datetime.now(UTC)), level, str(kind), str(message), None if details is None else _dumps(details))
-
-
-_INSERT_MEASUREMENT = (
-    "INSERT INTO measurements (id, t_wall, t_host_ns, camera, ok, reason, pose_of, x_mm, y_mm, z_mm,"
-    " deviation_position_mm, deviation_angle_deg, rms_px, n_targets, result)"
-    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
-)
-_INSERT_EVENT = "INSERT INTO events (t_wall, level, kind, message, details) VALUES (?, ?, ?, ?, ?)"
-
-
-def _check_page(limit: int, offset: int) -> None:
-    for name, v in (("limit", limit), ("offset", offset)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-            raise ValueError(f"{name} must be a non-negative integer, not {v!r}")
-
-
-def _where(t_from: datetime | None, t_to: datetime | None, **equal: Any) -> tuple[str, list[Any]]:
-    clauses = [
-        ("t_wall >= ?", None if t_from is None else iso_utc(t_from)),
-        ("t_wall < ?", None if t_to is None else iso_utc(t_to)),
-    ]
-    clauses += [(f"{column} = ?", value) for column, value in equal.items()]  # columns: ours, never input
-    used = [(c, v) for c, v in clauses if v is not None]
-    return (" WHERE " + " AND ".join(c for c, _ in used)) if used else "", [v for _, v in used]
 
 
 # ---------------------------------------------------------------- the store
@@ -389,7 +233,7 @@ class MeasurementStore:
         for v in range(version, SCHEMA_VERSION):
             conn.execute("BEGIN IMMEDIATE")
             try:
-                _MIGRATIONS[v](conn)
+                MIGRATIONS[v](conn)
                 conn.execute(f"PRAGMA user_version={v + 1}")  # transactional: a crash redoes the whole step
                 conn.execute("COMMIT")
             except BaseException:
@@ -448,22 +292,21 @@ class MeasurementStore:
 
     # ------------------------------------------------------------ writing (any thread)
 
-    def add_measurement(self, result: Mapping[str, Any]) -> int:
-        """Queue one result (DESIGN section 4 dict); return its sequence number, which is its row id.
+    def add_measurement(self, measurement: Measurement, *, triggered: bool = False) -> int:
+        """Queue one result; return its sequence number, which is its row id.
 
-        ``result`` is serialised now: later changes to the dict do not reach the database. Columns come
-        from ``ok``, ``reason``, ``camera``, ``t_host_ns``, ``t_wall`` (ISO 8601 with zone or an aware
-        datetime; now when absent), ``rms_px``, ``n_targets`` (or ``n_coded + n_uncoded``), the translation
-        of ``T_base_flange_measured`` (else ``T_field_camera``; ``pose_of`` says which) and
-        ``deviation_position_mm`` / ``deviation_angle_deg`` (or ``deviation: {"position_mm", "angle_deg"}``).
+        The columns are the measurement's fields: ``t_wall`` (its wall-clock instant), ``t_host_ns``
+        (the exposure on the host's clock), ``camera``, ``ok``, ``reason``, ``rms_px``, ``n_targets``,
+        the translation of the measured flange (else of the camera in the field; ``pose_of`` says
+        which) and the deviation; ``result`` holds its JSON (DESIGN section 4) plus ``triggered``.
 
         Raises
         ------
         StoreFull : ``max_queue`` rows are waiting; this one is not stored.
         StorageError : the store is closed.
-        ValueError, TypeError : not a dict with ``ok``, or not JSON serialisable.
+        TypeError : not a :class:`~service.core.measurement.Measurement`.
         """
-        row = _measurement_row(result)
+        row = measurement_row(measurement, triggered)
         with self._cond:
             if self._stopping:
                 raise StorageError(f"the measurement store {self.path} is closed")
@@ -480,7 +323,7 @@ class MeasurementStore:
 
     def add_event(self, kind: str, message: str, level: str = "info", details: Mapping[str, Any] | None = None) -> None:
         """Queue one event (``level``: debug, info, warning or error); a full queue counts and logs it."""
-        row = _event_row(kind, message, level, details)
+        row = event_row(kind, message, level, details)
         with self._cond:
             if self._stopping:
                 raise StorageError(f"the measurement store {self.path} is closed")
@@ -552,8 +395,8 @@ class MeasurementStore:
         """One transaction: the batch's rows plus the store's own events (errors, recovery)."""
         conn.execute("BEGIN")
         try:
-            conn.executemany(_INSERT_MEASUREMENT, [(seq, *row) for seq, tag, row in batch if tag == "m"])
-            conn.executemany(_INSERT_EVENT, [row for _, tag, row in batch if tag == "e"] + own_events)
+            conn.executemany(INSERT_MEASUREMENT, [(seq, *row) for seq, tag, row in batch if tag == "m"])
+            conn.executemany(INSERT_EVENT, [row for _, tag, row in batch if tag == "e"] + own_events)
             conn.execute("COMMIT")
         except BaseException:
             with contextlib.suppress(sqlite3.Error):
@@ -570,7 +413,7 @@ class MeasurementStore:
             own_events = list(self._own_events)
             if attempts:  # committed with the rows, so it is stored exactly when writing works again
                 own_events.append(
-                    _event_row(
+                    event_row(
                         "storage_recovered",
                         "writing to the measurement database works again",
                         "warning",
@@ -589,7 +432,7 @@ class MeasurementStore:
                         self._failing_since = t_fail
                     log.error("writing %d rows to %s failed (%s); retrying", len(batch), self.path, e)
                     self._own_events.append(
-                        _event_row(
+                        event_row(
                             "storage_error",
                             f"writing to the measurement database failed: {e}",
                             "error",
@@ -676,11 +519,11 @@ class MeasurementStore:
         Each row has the columns of CSV_COLUMNS but ``message`` (``ok`` a bool) and ``result``, the
         stored result dict. Datetimes must carry a time zone.
         """
-        _check_page(limit, offset)
-        where, params = _where(t_from, t_to, ok=None if ok is None else int(bool(ok)), camera=camera)
+        check_page(limit, offset)
+        where, params = where_clause(t_from, t_to, ok=None if ok is None else int(bool(ok)), camera=camera)
         order = "ASC" if oldest_first else "DESC"
         rows = self._select(
-            f"SELECT {', '.join(_ROW_COLUMNS)}, result FROM measurements{where} "
+            f"SELECT {', '.join(ROW_COLUMNS)}, result FROM measurements{where} "
             f"ORDER BY t_wall {order}, id {order} LIMIT ? OFFSET ?",
             [*params, limit, offset],
         )
@@ -696,7 +539,7 @@ class MeasurementStore:
         camera: str | None = None,
     ) -> int:
         """Number of measurements matching the filters of :meth:`measurements`."""
-        where, params = _where(t_from, t_to, ok=None if ok is None else int(bool(ok)), camera=camera)
+        where, params = where_clause(t_from, t_to, ok=None if ok is None else int(bool(ok)), camera=camera)
         return int(self._select(f"SELECT count(*) AS n FROM measurements{where}", params)[0]["n"])
 
     def events(
@@ -711,10 +554,10 @@ class MeasurementStore:
         oldest_first: bool = False,
     ) -> list[dict[str, Any]]:
         """Events (id, t_wall, level, kind, message, details dict or None), newest first by default."""
-        _check_page(limit, offset)
+        check_page(limit, offset)
         if level is not None and level not in EVENT_LEVELS:
             raise ValueError(f"event level {level!r} is not one of {', '.join(EVENT_LEVELS)}")
-        where, params = _where(t_from, t_to, level=level, kind=kind)
+        where, params = where_clause(t_from, t_to, level=level, kind=kind)
         order = "ASC" if oldest_first else "DESC"
         rows = self._select(
             f"SELECT id, t_wall, level, kind, message, details FROM events{where} "

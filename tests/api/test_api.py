@@ -122,13 +122,15 @@ def test_hub_drops_the_oldest_message_of_a_full_client_queue_and_counts_it():
     import asyncio
 
     from api.ws import Hub
+    from service.core.measurement import Measurement
+    from service.core.results import Failure, Reason
 
     async def scenario():
         hub = Hub(queue_size=3)
         hub.bind(asyncio.get_running_loop())
         slow, other = hub.add(None, None), hub.add("cam1", None)
         for k in range(5):
-            hub.publish_threadsafe({"camera": "cam0", "seq": k, "t_exposure_host_ns": k})
+            hub.publish_threadsafe(Measurement("cam0", Failure(Reason.no_frame, "-"), k, k, seq=k))
         await asyncio.sleep(0.01)  # let the loop run the scheduled publications
         got = [json.loads(slow.queue.get_nowait())["seq"] for _ in range(slow.queue.qsize())]
         return got, slow.dropped, hub.dropped_total, other.queue.qsize()

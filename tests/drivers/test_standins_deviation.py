@@ -20,7 +20,6 @@ from __future__ import annotations
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -28,6 +27,7 @@ import pytest
 pytest.importorskip("rtde_receive", reason="ur-rtde is installed by deploy/dev.sh (test extras)")
 pytest.importorskip("drivers.standins.gv_camera", reason="PyGObject and Aravis 0.8 (deploy/dev.sh)")
 
+from service.core.measurement import Measurement  # noqa: E402
 from service.runtime.worker import Worker  # noqa: E402
 from service.settings import load_settings  # noqa: E402
 
@@ -43,13 +43,13 @@ class _Results:
 
     def __init__(self, worker: Worker) -> None:
         self.worker = worker
-        self._rows: list[tuple[float, dict[str, Any]]] = []
+        self._rows: list[tuple[float, Measurement]] = []
         self._lock = threading.Lock()
         worker.subscribe(self._add)
 
-    def _add(self, result: dict[str, Any]) -> None:
-        if result.get("ok") and result.get("deviation") is not None:
-            t_s = (result["t_exposure_host_ns"] - self.worker.cell.epoch_ns) * 1e-9
+    def _add(self, result: Measurement) -> None:
+        if result.ok and result.flange is not None and result.flange.deviation is not None:
+            t_s = (result.t_exposure_host_ns - self.worker.cell.epoch_ns) * 1e-9
             with self._lock:
                 self._rows.append((t_s, result))
 
@@ -60,13 +60,13 @@ class _Results:
         t = np.array([t for t, _ in rows])
         return {
             "t_s": t,
-            "position_mm": np.array([r["deviation"]["position_mm"] for _, r in rows]),
-            "vector_mm": np.array([r["deviation"]["vector_mm"] for _, r in rows]).reshape(-1, 3),
-            "sigma_mm": np.array([np.linalg.norm(r["sigma_position_mm"]) for _, r in rows]),
+            "position_mm": np.array([r.flange.deviation.position_mm for _, r in rows]),
+            "vector_mm": np.array([r.flange.deviation.vector_mm for _, r in rows]).reshape(-1, 3),
+            "sigma_mm": np.array([np.linalg.norm(r.result.sigma_position_mm) for _, r in rows]),
             # the camera pose in the image against the true one at the claimed exposure instant
             "camera_mm": np.array(
                 [
-                    np.linalg.norm(np.array(r["T_field_camera"])[:3, 3] - cell.T_field_camera(ti)[:3, 3])
+                    np.linalg.norm(r.T_field_camera[:3, 3] - cell.T_field_camera(ti)[:3, 3])
                     for ti, (_, r) in zip(t, rows, strict=True)
                 ]
             ),

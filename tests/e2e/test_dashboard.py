@@ -327,7 +327,8 @@ def test_measure_now_without_token_is_unauthorized_and_with_token_gives_a_deviat
     with cell.client() as c:
         rows = c.get("/measurements", params={"limit": 50}).json()["measurements"]
     stored = next(r for r in rows if r["result"].get("seq") == seq)
-    assert stored["ok"] is True and abs(dev_mm - stored["deviation_position_mm"]) <= 0.00051
+    # the column holds the full value; the screen shows 3 decimals of the message's 4: within 0.00055 mm
+    assert stored["ok"] is True and abs(dev_mm - stored["deviation_position_mm"]) <= 0.00056
     assert 0 < dev_mm < 20  # nominal vs true robot pose in the simulated cell: a few mm, never zero
 
 
