@@ -169,6 +169,15 @@ def test_columns_are_taken_from_the_result(open_store):
         store.add_measurement({"ok": True, "rms_px": 0.1})  # a dict's keys would be guessed at
 
 
+def test_a_failure_detail_that_has_no_json_is_kept_as_its_text(open_store):
+    store = open_store()
+    odd = Failure(Reason.bad_image, "odd", {"shape": np.int64(3), "what": complex(1, 2)})
+    seq = store.add_measurement(Measurement("cam0", odd, time.time_ns(), 1, seq=1))
+    assert store.wait_written(seq, timeout_s=5.0)
+    (row,) = store.measurements()
+    assert row["result"]["shape"] == 3 and row["result"]["what"] == "(1+2j)" and row["reason"] == "bad_image"
+
+
 def test_csv_export_parses_back_with_the_csv_module(open_store):
     store = open_store()
     for n in range(6):

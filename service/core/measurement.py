@@ -249,4 +249,4 @@ def _finite(d: dict[str, Any]) -> dict[str, Any]:
 def _null(o: Any) -> Any:
     if hasattr(o, "tolist"):  # a NumPy value in a failure's details
         return o.tolist()
-    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
+    return repr(o)  # anything else a failure's details carry: its text, never a lost result

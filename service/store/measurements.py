@@ -9,10 +9,10 @@ FULL costs one fsync per *batch*, not per row: rows arriving during a commit go
 into the next batch (group commit), so the cost per row falls as the rate rises.
 A kill at any instant leaves a consistent database (WAL rollback rules).
 
-Queue. :meth:`~MeasurementStore.add_measurement` never blocks: it serialises the
-result in the caller's thread, queues it and returns its sequence number, which is
-also its row ``id``. With ``max_queue`` rows waiting (a failing or far too slow
-disk) it raises :class:`StoreFull` rather than drop anything silently: the caller
+Queue. :meth:`~MeasurementStore.add_measurement` never blocks: it queues the (frozen)
+measurement and returns its sequence number, which is also its row ``id``; the writer
+thread turns it into its row, off the processing thread's path. With ``max_queue`` rows
+waiting (a failing or far too slow disk) it raises :class:`StoreFull` rather than drop anything silently: the caller
 knows that row is not stored (POST /measure answers 503), and ``stats()["dropped"]``
 counts it. Events are diagnostic: :meth:`~MeasurementStore.add_event` counts and
 logs a full queue instead of raising.
@@ -73,7 +73,8 @@ _RETRY_MAX_S = 1.0
 _BUSY_TIMEOUT_S = 0.5
 _JOURNAL_SIZE_LIMIT_BYTES = 64 * 1024 * 1024
 
-Item = tuple[int, str, tuple[Any, ...]]  # (seq, or 0 for an event; "m" | "e"; column values)
+# (seq, or 0 for an event; "m" | "e"; column values), or (seq, "q", (measurement, triggered)) while queued
+Item = tuple[int, str, tuple[Any, ...]]
 
 
 class StorageError(Exception):
@@ -306,7 +307,10 @@ class MeasurementStore:
         StorageError : the store is closed.
         TypeError : not a :class:`~service.core.measurement.Measurement`.
         """
-        row = measurement_row(measurement, triggered)
+        if not isinstance(measurement, Measurement):
+            raise TypeError(
+                f"a measurement must be a service.core.measurement.Measurement, not {type(measurement).__name__}"
+            )
         with self._cond:
             if self._stopping:
                 raise StorageError(f"the measurement store {self.path} is closed")
@@ -318,7 +322,8 @@ class MeasurementStore:
                 )
             seq = self._next_seq
             self._next_seq += 1
-            self._enqueue((seq, "m", row))
+            # frozen: converted to its row by the writer thread, off the processing thread's path
+            self._enqueue((seq, "q", (measurement, triggered)))
         return seq
 
     def add_event(self, kind: str, message: str, level: str = "info", details: Mapping[str, Any] | None = None) -> None:
@@ -356,7 +361,10 @@ class MeasurementStore:
             self._maintenance(conn)
             next_maintenance = time.monotonic() + self.maintenance_interval_s
             while True:
-                batch = self._next_batch(next_maintenance)
+                batch = [
+                    (seq, "m", measurement_row(*row)) if tag == "q" else (seq, tag, row)
+                    for seq, tag, row in self._next_batch(next_maintenance)
+                ]
                 if batch:
                     self._commit_with_retry(conn, batch)
                 elif self._stopping:
