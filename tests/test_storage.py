@@ -112,6 +112,16 @@ def test_wait_written_acknowledges_without_waiting_for_the_flush_interval(open_s
         store.wait_written(seq + 1, timeout_s=0.1)
 
 
+def test_the_exposure_to_commit_latency_is_reported(open_store):
+    store = open_store(flush_interval_s=0.0)
+    assert store.stats()["commit_latency_ms"] is None
+    exposed = datetime.now(UTC) - timedelta(milliseconds=200)  # as if the frame was exposed 0.2 s ago
+    seqs = [store.add_measurement(result(n, t_wall=exposed)) for n in range(20)]
+    assert store.wait_written(seqs[-1], timeout_s=5.0)
+    latency = store.stats()["commit_latency_ms"]
+    assert latency["n"] == 20 and 200.0 <= latency["p50"] <= latency["p99"] <= latency["max"] < 5000.0
+
+
 def test_time_ok_camera_filters_and_paging(open_store):
     store = open_store()
     for n in range(40):  # one per minute; every 4th failed; cameras alternate

@@ -140,6 +140,7 @@ class MeasurementStore:
             raise
         self._cond = threading.Condition()  # guards the queue and the sequence numbers
         self._pending: deque[Item] = deque()
+        self._commit_latency_ms: deque[float] = deque(maxlen=5000)  # exposure -> committed, last rows
         self._next_seq, self._written_seq, self._flush_upto, self._inflight = first_seq, first_seq - 1, 0, 0
         self._stopping = self._closed = False
         self._stop_deadline = math.inf
@@ -361,12 +362,15 @@ class MeasurementStore:
             self._maintenance(conn)
             next_maintenance = time.monotonic() + self.maintenance_interval_s
             while True:
+                queued = self._next_batch(next_maintenance)
+                exposed_unix_ns = [row[0].t_unix_ns for _, tag, row in queued if tag == "q"]
                 batch = [
-                    (seq, "m", measurement_row(*row)) if tag == "q" else (seq, tag, row)
-                    for seq, tag, row in self._next_batch(next_maintenance)
+                    (seq, "m", measurement_row(*row)) if tag == "q" else (seq, tag, row) for seq, tag, row in queued
                 ]
-                if batch:
-                    self._commit_with_retry(conn, batch)
+                if batch and self._commit_with_retry(conn, batch):
+                    now_ns = time.time_ns()
+                    with self._cond:
+                        self._commit_latency_ms.extend((now_ns - t) * 1e-6 for t in exposed_unix_ns)
                 elif self._stopping:
                     break
                 if time.monotonic() >= next_maintenance:
@@ -415,7 +419,8 @@ class MeasurementStore:
         self._last_error = f"{type(e).__name__}: {e}"
         self._last_error_t_wall = iso_utc(datetime.now(UTC))
 
-    def _commit_with_retry(self, conn: sqlite3.Connection, batch: list[Item]) -> None:
+    def _commit_with_retry(self, conn: sqlite3.Connection, batch: list[Item]) -> bool:
+        """Commit ``batch``, retrying while the database refuses; False: abandoned at close."""
         delay_s, attempts, t_fail = 0.05, 0, 0.0
         while True:
             own_events = list(self._own_events)
@@ -454,7 +459,7 @@ class MeasurementStore:
                         self._pending.clear()
                         self._inflight = 0
                         log.error("closing %s: %d unacknowledged rows abandoned after %s", self.path, lost, e)
-                        return
+                        return False
                     self._cond.wait(delay_s)
                 delay_s = min(2 * delay_s, _RETRY_MAX_S)
         if attempts:
@@ -469,6 +474,7 @@ class MeasurementStore:
             self._counts["batches"] += 1
             self._inflight = 0
             self._cond.notify_all()
+        return True
 
     def _maintenance(self, conn: sqlite3.Connection) -> None:
         """Retention purge in chunks, then WAL truncation; errors are recorded, never raised."""
@@ -614,6 +620,7 @@ class MeasurementStore:
                 "queued": len(self._pending) + self._inflight,
                 "last_written_seq": self._written_seq,
                 **self._counts,
+                "commit_latency_ms": _spread(self._commit_latency_ms),
             }
         size = 0
         for suffix in ("", "-wal"):
@@ -626,3 +633,17 @@ class MeasurementStore:
             last_error_t_wall=self._last_error_t_wall,
         )
         return out
+
+
+def _spread(values_ms: deque[float]) -> dict[str, float | int] | None:
+    """p50, p99 and max of the exposure → commit latency of the last rows (their wall clock is the exposure's)."""
+    if not values_ms:
+        return None
+    ms = sorted(values_ms)
+    n = len(ms)
+    return {
+        "n": n,
+        "p50": round(ms[n // 2], 3),
+        "p99": round(ms[min(n - 1, int(0.99 * n))], 3),
+        "max": round(ms[-1], 3),
+    }
