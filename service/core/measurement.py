@@ -18,9 +18,9 @@ exposure, ``camera_state`` says why) and the newest result served late
 from __future__ import annotations
 
 import json
-import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
+from datetime import UTC, datetime
 from functools import cached_property
 from types import MappingProxyType
 from typing import Any
@@ -44,7 +44,7 @@ def _round_T(T: Array) -> list[list[float]]:
 def iso_wall(t_unix_ns: int) -> str:
     """ISO 8601 UTC with milliseconds, e.g. ``2026-12-01T22:40:41.123Z``."""
     secs, ns = divmod(int(t_unix_ns), 1_000_000_000)
-    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(secs)) + f".{ns // 1_000_000:03d}Z"
+    return datetime.fromtimestamp(secs, UTC).strftime("%Y-%m-%dT%H:%M:%S") + f".{ns // 1_000_000:03d}Z"
 
 
 @dataclass(frozen=True)
