@@ -41,7 +41,8 @@ import time
 
 import numpy as np
 
-from drivers.standins.rtde_server import RobotState, RtdeServer
+from drivers.standins.rtde_protocol import RobotState
+from drivers.standins.rtde_server import RtdeServer
 from service.core.geometry.frames import ur_pose_from_T
 from service.sim.cell import CellConfig, SimCell
 

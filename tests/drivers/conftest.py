@@ -70,7 +70,8 @@ def _sim_robot() -> Iterator[Any]:
 @contextmanager
 def _ur_standin() -> Iterator[Any]:
     """The real ur_rtde client (in the UR driver's child process) against the RTDE stand-in."""
-    from drivers.standins.rtde_server import DemoArm, RtdeServer
+    from drivers.standins.demo_arm import DemoArm
+    from drivers.standins.rtde_server import RtdeServer
 
     with RtdeServer(DemoArm(), host="127.0.0.10"):
         robot = make_robot("ur", host="127.0.0.10", frequency_hz=125.0)

@@ -17,7 +17,8 @@ pytest.importorskip("rtde_receive", reason="ur-rtde is installed by deploy/dev.s
 
 from drivers.base import DriverDisconnected  # noqa: E402
 from drivers.robot.ur import URRobot  # noqa: E402
-from drivers.standins.rtde_server import DemoArm, RtdeServer  # noqa: E402
+from drivers.standins.demo_arm import DemoArm  # noqa: E402
+from drivers.standins.rtde_server import RtdeServer  # noqa: E402
 
 HOST = "127.0.0.12"
 

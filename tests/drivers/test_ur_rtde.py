@@ -19,81 +19,83 @@ import pytest
 from drivers.base import DriverDisconnected, DriverInitError, RobotDriver
 from drivers.registry import make_robot
 from drivers.robot.ur import URRobot
-from drivers.standins import rtde_server as rs
+from drivers.standins import rtde_protocol as rp
+from drivers.standins.demo_arm import DemoArm
+from drivers.standins.rtde_server import RtdeServer
 from service.core.geometry.frames import T_from_ur_pose, pose_difference
 
 # --- the stand-in's protocol, pure --------------------------------------------------------------
 
 
 def _outputs_setup(frequency_hz: float, names: str) -> bytes:
-    return rs.pack_package(rs.SETUP_OUTPUTS, struct.pack(">d", frequency_hz) + names.encode())
+    return rp.pack_package(rp.SETUP_OUTPUTS, struct.pack(">d", frequency_hz) + names.encode())
 
 
-def _handshake(session: rs.RtdeSession, frequency_hz: float, names: str) -> list[bytes]:
+def _handshake(session: rp.RtdeSession, frequency_hz: float, names: str) -> list[bytes]:
     replies = []
     for pkg in (
-        rs.pack_package(rs.REQUEST_PROTOCOL_VERSION, b"\x00\x02"),
-        rs.pack_package(rs.GET_URCONTROL_VERSION),
+        rp.pack_package(rp.REQUEST_PROTOCOL_VERSION, b"\x00\x02"),
+        rp.pack_package(rp.GET_URCONTROL_VERSION),
         _outputs_setup(frequency_hz, names),
-        rs.pack_package(rs.START),
+        rp.pack_package(rp.START),
     ):
         replies += session.feed(pkg)
     return replies
 
 
 def test_handshake_is_answered_with_exactly_one_reply_per_request_and_no_text_message():
-    session = rs.RtdeSession(controller_version=(5, 11, 2, 1234))
+    session = rp.RtdeSession(controller_version=(5, 11, 2, 1234))
     replies = _handshake(session, 125.0, "timestamp,actual_TCP_pose,actual_q,")
     assert replies == [
         b"\x00\x04V\x01",
         b"\x00\x13v" + struct.pack(">IIII", 5, 11, 2, 1234),
-        rs.pack_package(rs.SETUP_OUTPUTS, b"\x01DOUBLE,VECTOR6D,VECTOR6D"),
+        rp.pack_package(rp.SETUP_OUTPUTS, b"\x01DOUBLE,VECTOR6D,VECTOR6D"),
         b"\x00\x04S\x01",
     ]
     assert session.started
 
 
 def test_protocol_version_other_than_2_is_refused():
-    session = rs.RtdeSession()
-    assert session.feed(rs.pack_package(rs.REQUEST_PROTOCOL_VERSION, b"\x00\x01")) == [b"\x00\x04V\x00"]
+    session = rp.RtdeSession()
+    assert session.feed(rp.pack_package(rp.REQUEST_PROTOCOL_VERSION, b"\x00\x01")) == [b"\x00\x04V\x00"]
 
 
 def test_output_recipe_is_sent_every_n_ticks_with_recipe_id_and_typed_fields():
-    session = rs.RtdeSession(base_rate_hz=500.0)
+    session = rp.RtdeSession(base_rate_hz=500.0)
     _handshake(session, 125.0, "timestamp,actual_q,robot_mode,")
-    state = rs.RobotState(actual_q=(0.1, 0.2, 0.3, 0.4, 0.5, 0.6), robot_mode=7)
+    state = rp.RobotState(actual_q=(0.1, 0.2, 0.3, 0.4, 0.5, 0.6), robot_mode=7)
     sent = {tick: session.due_outputs(tick, state, tick * 0.002) for tick in range(12)}
     assert [t for t, pkgs in sent.items() if pkgs] == [0, 4, 8]  # 500 Hz loop / 125 Hz asked
     size, kind, recipe_id, ts, *rest = struct.unpack(">HBBd6di", sent[4][0])
-    assert (size, kind, recipe_id) == (3 + 1 + 8 + 48 + 4, rs.DATA_PACKAGE, 1)
+    assert (size, kind, recipe_id) == (3 + 1 + 8 + 48 + 4, rp.DATA_PACKAGE, 1)
     assert ts == pytest.approx(0.008)
     assert rest == [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 7]
 
 
 def test_unknown_variable_is_answered_not_found_and_its_recipe_is_refused():
-    session = rs.RtdeSession()
+    session = rp.RtdeSession()
     reply = session.feed(_outputs_setup(125.0, "timestamp,no_such_variable,actual_q,"))
-    assert reply == [rs.pack_package(rs.SETUP_OUTPUTS, b"\x00DOUBLE,NOT_FOUND,VECTOR6D")]
+    assert reply == [rp.pack_package(rp.SETUP_OUTPUTS, b"\x00DOUBLE,NOT_FOUND,VECTOR6D")]
     assert session.outputs == {}
-    assert session.feed(rs.pack_package(rs.START)) == [b"\x00\x04S\x00"]  # nothing to start
+    assert session.feed(rp.pack_package(rp.START)) == [b"\x00\x04S\x00"]  # nothing to start
 
 
 def test_unknown_package_type_gets_a_text_message_and_the_session_goes_on():
-    session = rs.RtdeSession()
-    (reply,) = session.feed(rs.pack_package(ord("Z"), b"abc"))
+    session = rp.RtdeSession()
+    (reply,) = session.feed(rp.pack_package(ord("Z"), b"abc"))
     size, kind, n = struct.unpack_from(">HBB", reply)
-    assert kind == rs.TEXT_MESSAGE and size == len(reply)
+    assert kind == rp.TEXT_MESSAGE and size == len(reply)
     assert b"unknown package type" in reply[4 : 4 + n]
-    assert reply[-1] == rs.ERROR_MESSAGE
-    assert session.feed(rs.pack_package(rs.GET_URCONTROL_VERSION))[0][2] == rs.GET_URCONTROL_VERSION
+    assert reply[-1] == rp.ERROR_MESSAGE
+    assert session.feed(rp.pack_package(rp.GET_URCONTROL_VERSION))[0][2] == rp.GET_URCONTROL_VERSION
 
 
 def test_packages_split_across_reads_are_reassembled_and_a_bad_size_is_a_protocol_error():
-    session = rs.RtdeSession()
-    stream = rs.pack_package(rs.REQUEST_PROTOCOL_VERSION, b"\x00\x02") + rs.pack_package(rs.GET_URCONTROL_VERSION)
+    session = rp.RtdeSession()
+    stream = rp.pack_package(rp.REQUEST_PROTOCOL_VERSION, b"\x00\x02") + rp.pack_package(rp.GET_URCONTROL_VERSION)
     replies = [r for byte in stream for r in session.feed(bytes([byte]))]
-    assert [r[2] for r in replies] == [rs.REQUEST_PROTOCOL_VERSION, rs.GET_URCONTROL_VERSION]
-    with pytest.raises(rs.ProtocolError):
+    assert [r[2] for r in replies] == [rp.REQUEST_PROTOCOL_VERSION, rp.GET_URCONTROL_VERSION]
+    with pytest.raises(rp.ProtocolError):
         session.feed(b"\x00\x01V")
 
 
@@ -109,7 +111,7 @@ def test_every_rtde_type_is_serialised_big_endian_from_state_and_extra():
         "actual_TCP_pose",
         "joint_mode",
     ]
-    session = rs.RtdeSession()
+    session = rp.RtdeSession()
     session.feed(_outputs_setup(500.0, ",".join(names)))
     recipe = session.outputs[1]
     assert recipe.types == [
@@ -123,7 +125,7 @@ def test_every_rtde_type_is_serialised_big_endian_from_state_and_extra():
         "VECTOR6D",
         "VECTOR6INT32",
     ]
-    state = rs.RobotState(
+    state = rp.RobotState(
         actual_TCP_pose=(1, 2, 3, 4, 5, 6),
         runtime_state=4,
         safety_mode=-3,
@@ -136,7 +138,7 @@ def test_every_rtde_type_is_serialised_big_endian_from_state_and_extra():
             "actual_tool_accelerometer": (0, 0, 9.81),
         },
     )
-    pkg = rs.serialize_outputs(recipe, state, 1.0)
+    pkg = rp.serialize_outputs(recipe, state, 1.0)
     values = struct.unpack(">HBB?BIQid3d6d6i", pkg)
     assert values[3:] == (
         True,
@@ -164,17 +166,17 @@ def test_every_rtde_type_is_serialised_big_endian_from_state_and_extra():
 
 
 def test_input_recipe_accepts_data_packages_from_the_client():
-    session = rs.RtdeSession()
-    (reply,) = session.feed(rs.pack_package(rs.SETUP_INPUTS, b"input_int_register_0,input_double_register_1,"))
-    assert reply == rs.pack_package(rs.SETUP_INPUTS, b"\x01INT32,DOUBLE")
-    session.feed(rs.pack_package(rs.START))
-    assert session.feed(rs.pack_package(rs.DATA_PACKAGE, struct.pack(">Bid", 1, -7, 2.5))) == []
+    session = rp.RtdeSession()
+    (reply,) = session.feed(rp.pack_package(rp.SETUP_INPUTS, b"input_int_register_0,input_double_register_1,"))
+    assert reply == rp.pack_package(rp.SETUP_INPUTS, b"\x01INT32,DOUBLE")
+    session.feed(rp.pack_package(rp.START))
+    assert session.feed(rp.pack_package(rp.DATA_PACKAGE, struct.pack(">Bid", 1, -7, 2.5))) == []
     assert session.received_inputs == {"input_int_register_0": -7, "input_double_register_1": 2.5}
 
 
 def test_demo_arm_reports_the_tcp_pose_as_flange_pose_times_tcp_offset():
     T_flange_tcp = T_from_ur_pose([0.01, -0.02, 0.15, 0.1, 0.2, -0.3])
-    arm = rs.DemoArm(T_flange_tcp)
+    arm = DemoArm(T_flange_tcp)
     state = arm(3.7)
     dp_mm, dr_deg = pose_difference(T_from_ur_pose(state.actual_TCP_pose), arm.T_base_flange(3.7) @ T_flange_tcp)
     assert dp_mm < 1e-9 and dr_deg < 1e-9
@@ -185,8 +187,8 @@ def test_demo_arm_reports_the_tcp_pose_as_flange_pose_times_tcp_offset():
 
 
 @contextmanager
-def _standin(host: str, source: rs.StateSource) -> Iterator[rs.RtdeServer]:
-    server = rs.RtdeServer(source, host=host)
+def _standin(host: str, source: rp.StateSource) -> Iterator[RtdeServer]:
+    server = RtdeServer(source, host=host)
     server.start()
     try:
         yield server
@@ -230,7 +232,7 @@ def test_registry_makes_a_ur_robot_driver_and_refuses_another_port():
     ("host", "frequency_hz", "min_fraction"), [("127.0.0.2", 125.0, 0.8), ("127.0.0.3", 500.0, 0.7)]
 )
 def test_ur_rtde_reads_the_standin_at_the_asked_rate_with_matching_poses(host, frequency_hz, min_fraction):
-    arm = rs.DemoArm()
+    arm = DemoArm()
     with _standin(host, arm), _opened(URRobot(host, frequency_hz=frequency_hz)) as robot:
         time.sleep(0.2)
         t0 = time.monotonic_ns()
@@ -257,7 +259,7 @@ def test_ur_rtde_reads_the_standin_at_the_asked_rate_with_matching_poses(host, f
 
 def test_tcp_offset_set_on_the_controller_is_removed_to_give_the_flange():
     T_flange_tcp = T_from_ur_pose([0.02, -0.01, 0.18, 0.0, 0.3, 0.1])  # a 180 mm tool, tilted
-    arm = rs.DemoArm(T_flange_tcp)
+    arm = DemoArm(T_flange_tcp)
     with (
         _standin("127.0.0.4", arm),
         _opened(URRobot("127.0.0.4", frequency_hz=125.0, T_flange_tcp=T_flange_tcp)) as robot,
@@ -275,7 +277,7 @@ def test_tcp_offset_set_on_the_controller_is_removed_to_give_the_flange():
 def test_latest_raises_after_the_standin_stops_and_samples_flow_again_after_it_restarts():
     host = "127.0.0.5"
     with (
-        _standin(host, rs.DemoArm()) as server,
+        _standin(host, DemoArm()) as server,
         _opened(URRobot(host, frequency_hz=125.0, reconnect_interval_s=0.2)) as robot,
     ):
         robot.latest()
