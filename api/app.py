@@ -7,6 +7,12 @@ in reverse order on shutdown (one ``AsyncExitStack``). ``READY=1`` goes to
 systemd once HTTP is up; device states are reported through ``/health``
 rather than by failing the start (a camera that is unplugged at boot must not
 put the unit into a restart loop).
+
+The settings in force are the worker's (``worker.settings``, frozen, swapped whole
+by ``PUT /config``); routes read them there (``api.deps.SettingsDep``), never a
+copy of their own. ``create_app``'s ``settings`` are the configuration file's: the
+lifespan applies the saved run-time changes to them and builds the worker with
+the result.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ import contextlib
 import logging
 import os
 import socket
+import threading
 from collections.abc import AsyncIterator
 from functools import partial
 from pathlib import Path
@@ -62,10 +69,9 @@ def create_app(settings: Settings) -> FastAPI:
             store.start()
             stack.callback(store.close)
             runtime = apply_runtime_file(settings, events=store)  # a bad file: set aside, an event, not applied
-            settings.cameras, settings.processing = runtime.cameras, runtime.processing
             calib_store = CalibrationStore(state_dir / "calibration")
             # loading calibrations may build the simulated cell (a second); keep the loop free
-            worker = await asyncio.to_thread(partial(Worker, settings, store, calib_store=calib_store))
+            worker = await asyncio.to_thread(partial(Worker, runtime, store, calib_store=calib_store))
             hub = Hub(stall_timeout_s=settings.server.ws_stall_timeout_s)
             hub.bind(asyncio.get_running_loop())
             app.state.worker, app.state.store, app.state.hub = worker, store, hub
@@ -86,7 +92,7 @@ def create_app(settings: Settings) -> FastAPI:
         docs_url=None,  # served from local assets by api.docs
         redoc_url=None,
     )
-    app.state.settings = settings
+    app.state.config_lock = threading.Lock()  # one PUT /config at a time: each applies all of itself or nothing
     errors.install(app)
     # Host, WebSocket Origin, token and body size are checked from the headers before any route runs;
     # CORS (added last, so outermost) puts its headers on those refusals too

@@ -10,6 +10,7 @@ from api.errors import ApiError
 from api.ws import Hub
 from service.core.results import Reason
 from service.runtime.worker import Worker
+from service.settings import Settings
 from service.store.measurements import MeasurementStore
 
 
@@ -27,6 +28,11 @@ def get_store(request: Request) -> MeasurementStore:
     return store
 
 
+def get_settings(request: Request) -> Settings:
+    """The settings in force: the worker's (its ``PUT /config`` changes swap them whole), never a copy."""
+    return get_worker(request).settings
+
+
 def get_hub(request: Request) -> Hub:
     return request.app.state.hub
 
@@ -34,3 +40,4 @@ def get_hub(request: Request) -> Hub:
 WorkerDep = Annotated[Worker, Depends(get_worker)]
 StoreDep = Annotated[MeasurementStore, Depends(get_store)]
 HubDep = Annotated[Hub, Depends(get_hub)]
+SettingsDep = Annotated[Settings, Depends(get_settings)]

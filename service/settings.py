@@ -13,6 +13,11 @@ runtime file of ``PUT /config`` and that route's patch models (derived from
 them) all obey the same limits. Every number must be finite (TOML's ``inf`` and
 ``nan``, JSON's ``Infinity`` and ``NaN`` are refused) and lie in a physical
 range, stated with its unit in the field's description so that OpenAPI shows it.
+
+Every model is frozen (lists are tuples), as Prefect's server settings are: a
+configuration change builds a new :class:`Settings` (:meth:`Settings.with_camera`,
+:meth:`Settings.with_processing`, :func:`with_runtime_overrides`) and its owner, the
+worker, swaps it whole, so that a reader holding one never sees it change under it.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Annotated, Any, Literal, Protocol
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from drivers.base import CameraSettings, StrobeSettings, TriggerMode
@@ -35,8 +40,9 @@ log = logging.getLogger(__name__)
 
 
 class _Section(BaseModel):
-    # a misspelt key is an error, not a silent default; no number is NaN or infinite
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    # a misspelt key is an error, not a silent default; no number is NaN or infinite; a change is
+    # a new object (model_copy), never an assignment
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
 
 class ServerSettings(_Section):
@@ -45,10 +51,10 @@ class ServerSettings(_Section):
     # bearer token for state-changing requests; empty: one is generated at start and written to
     # <state_dir>/api-token (mode 0600), so nothing is ever open by default
     token: str = ""
-    cors_origins: list[str] = []  # browser origins allowed to call the API and to open /ws/poses
+    cors_origins: tuple[str, ...] = ()  # browser origins allowed to call the API and to open /ws/poses
     # Host header names the service answers to (against DNS rebinding); IP addresses and the bound host
     # are always accepted, since a rebinding page reaches the service only under a DNS name; "*": any
-    allowed_hosts: list[str] = ["localhost"]
+    allowed_hosts: tuple[str, ...] = ("localhost",)
     # largest request body (413 beyond): a field.json of 10 000 targets is 1.7-3.1 MB, a camera
     # self-calibration of 50 images x 500 points 1.5-3.5 MB (compact to indented JSON)
     max_body_bytes: int = Field(16 * 1024 * 1024, ge=1024)
@@ -87,8 +93,9 @@ _RoiSizePx = Annotated[int, Field(gt=0, le=_ROI_MAX_PX)]
 
 class CameraConfig(_Section):
     name: str = "cam0"
-    driver: Literal["sim", "aravis", "v4l2"] = "sim"
-    options: dict[str, Any] = {}  # driver constructor options (aravis: device, packet_size, ...)
+    driver: Literal["sim", "aravis", "v4l2", "replay"] = "sim"
+    # driver constructor options (aravis: device, packet_size, ...; replay: source = "sim" or a folder, loop)
+    options: dict[str, Any] = {}
     exposure_us: float | None = Field(
         2000.0, gt=0, le=10_000_000, description="exposure time, µs, (0, 10 s]; none: leave the camera's"
     )
@@ -145,9 +152,18 @@ class ProcessingConfig(_Section):
         le=65_535,
         description=("detection threshold above the local background, DN, (0, 65 535]; none: the detector's"),
     )
-    max_area_px: int | None = Field(
-        None, gt=0, le=100_000_000, description="largest target image, px, (0, 10^8]; none: the detector's"
+    min_area_px: int | None = Field(
+        None, gt=0, le=100_000_000, description="smallest target image, px, (0, 10^8]; none: the detector's (6)"
     )
+    max_area_px: int | None = Field(
+        None, gt=0, le=100_000_000, description="largest target image, px, (0, 10^8]; none: the detector's (5000)"
+    )
+
+    @model_validator(mode="after")
+    def _area_limits_in_order(self) -> ProcessingConfig:
+        if self.min_area_px is not None and self.max_area_px is not None and self.min_area_px > self.max_area_px:
+            raise ValueError(f"min_area_px {self.min_area_px} is larger than max_area_px {self.max_area_px}")
+        return self
 
 
 class CalibrationConfig(_Section):
@@ -185,12 +201,12 @@ class SimConfig(_Section):
 
 
 class Settings(BaseSettings):
-    model_config = SettingsConfigDict(env_prefix="POSECELL_", env_nested_delimiter="__", extra="forbid")
+    model_config = SettingsConfigDict(env_prefix="POSECELL_", env_nested_delimiter="__", extra="forbid", frozen=True)
 
     state_dir: Path = Path("~/.local/state/posecell")
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     server: ServerSettings = ServerSettings()
-    cameras: list[CameraConfig] = [CameraConfig()]
+    cameras: tuple[CameraConfig, ...] = (CameraConfig(),)
     robot: RobotConfig = RobotConfig()
     processing: ProcessingConfig = ProcessingConfig()
     calibration: CalibrationConfig = CalibrationConfig()
@@ -199,7 +215,7 @@ class Settings(BaseSettings):
 
     @field_validator("cameras")
     @classmethod
-    def _unique_camera_names(cls, v: list[CameraConfig]) -> list[CameraConfig]:
+    def _unique_camera_names(cls, v: tuple[CameraConfig, ...]) -> tuple[CameraConfig, ...]:
         names = [c.name for c in v]
         if not v:
             raise ValueError("at least one camera must be configured")
@@ -221,10 +237,38 @@ class Settings(BaseSettings):
 
     @property
     def uses_sim(self) -> bool:
-        return self.robot.driver == "sim" or any(c.driver == "sim" for c in self.cameras)
+        """The simulated cell runs: a simulated device, or a replay of the simulated cell's frames."""
+        return self.robot.driver == "sim" or any(
+            c.driver == "sim" or (c.driver == "replay" and str(c.options.get("source", "sim")) == "sim")
+            for c in self.cameras
+        )
 
     def resolved_state_dir(self) -> Path:
         return self.state_dir.expanduser()
+
+    # --- changes: a new Settings, never an assignment ----------------------------------------------
+    # ``model_copy(update=...)`` does not validate, and validating a whole Settings again would read
+    # the environment again (a POSECELL_* variable would undo a run-time change): the sections given
+    # here are validated models, and what ties them together (the camera names) is checked here.
+
+    def with_camera(self, camera: CameraConfig) -> Settings:
+        """These settings with the camera of ``camera.name`` replaced (a new object).
+
+        Raises ``KeyError`` for a name not configured and ``ValueError`` for another driver or other
+        driver options: which device a camera is, is the configuration file's business.
+        """
+        names = [c.name for c in self.cameras]
+        if camera.name not in names:
+            raise KeyError(f"no camera named {camera.name!r}; cameras: {names}")
+        i = names.index(camera.name)
+        old = self.cameras[i]
+        if (camera.driver, camera.options) != (old.driver, old.options):
+            raise ValueError(f"camera {camera.name}: the driver and its options are changed in the configuration file")
+        return self.model_copy(update={"cameras": (*self.cameras[:i], camera, *self.cameras[i + 1 :])})
+
+    def with_processing(self, processing: ProcessingConfig) -> Settings:
+        """These settings with other processing options (a new object)."""
+        return self.model_copy(update={"processing": processing})
 
 
 class SettingsError(ValueError):
@@ -257,9 +301,11 @@ def load_settings(path: Path | None = None, **overrides: Any) -> Settings:
 
 def validation_problems(e: ValidationError, prefix: str = "") -> str:
     """Every bad key of a pydantic error on one line: ``cameras.0.exposure_us: Input should be ...``."""
-    return "; ".join(
-        f"{prefix}{'.'.join(str(p) for p in err['loc'])}: {err['msg']}" for err in e.errors(include_url=False)
-    )
+    out = []
+    for err in e.errors(include_url=False):
+        where = (prefix + ".".join(str(p) for p in err["loc"])).rstrip(".")  # a model's own check: no field
+        out.append(f"{where}: {err['msg']}" if where else err["msg"])
+    return "; ".join(out)
 
 
 RUNTIME_FILE = "runtime-config.json"  # in state_dir: what PUT /config changed, re-applied at start
@@ -287,21 +333,20 @@ def with_runtime_overrides(settings: Settings, overrides: Any) -> Settings:
     if not isinstance(saved, dict):
         raise SettingsError("runtime overrides: 'processing' must be an object")
     by_name = {c.get("name"): c for c in saved_cameras}
-    cameras = []
+    out = settings
     for c in settings.cameras:
         try:
-            cameras.append(
-                CameraConfig.model_validate(
-                    {**c.model_dump(), **by_name.get(c.name, {}), "driver": c.driver, "options": c.options}
-                )
+            camera = CameraConfig.model_validate(
+                {**c.model_dump(), **by_name.get(c.name, {}), "driver": c.driver, "options": c.options}
             )
         except ValidationError as e:
             raise SettingsError(f"bad runtime overrides: {validation_problems(e, f'cameras.{c.name}.')}") from None
+        out = out.with_camera(camera)
     try:
         processing = ProcessingConfig.model_validate({**settings.processing.model_dump(), **saved})
     except ValidationError as e:
         raise SettingsError(f"bad runtime overrides: {validation_problems(e, 'processing.')}") from None
-    return settings.model_copy(update={"cameras": cameras, "processing": processing})
+    return out.with_processing(processing)
 
 
 class EventSink(Protocol):

@@ -18,7 +18,7 @@ from service.cli import main as cli
 from service.sim import scene
 from service.sim.render import RenderSettings, render_frame
 from service.store import formats
-from service.workflows.calibrate_camera import _rig_shots, pair_epochs
+from service.workflows.calibrate_rig import _rig_shots, pair_epochs
 from tests.core.test_bundle import NOISE_PX, TRUE_CAMERA, convergent_poses, field_3d
 from tests.core.test_rig import SECOND_CAMERA, T_MASTER_CAMERA1, rig_images
 

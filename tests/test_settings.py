@@ -10,6 +10,8 @@ import pytest
 
 from service.settings import (
     RUNTIME_FILE,
+    CameraConfig,
+    ProcessingConfig,
     Settings,
     SettingsError,
     apply_runtime_file,
@@ -127,7 +129,8 @@ class Events:
 
 def test_saved_runtime_file_is_standard_json_and_applied_at_the_next_start(tmp_path):
     s = Settings(state_dir=tmp_path)
-    s.cameras[0].exposure_us, s.processing.min_targets = 900.0, 9
+    s = s.with_camera(s.cameras[0].model_copy(update={"exposure_us": 900.0}))
+    s = s.with_processing(s.processing.model_copy(update={"min_targets": 9}))
     save_runtime_file(s)
     text = (tmp_path / RUNTIME_FILE).read_text()
     json.loads(text, parse_constant=lambda c: pytest.fail(f"non-standard JSON {c}"))
@@ -169,3 +172,59 @@ def test_no_runtime_file_leaves_the_settings_as_they_are(tmp_path):
         == Settings(state_dir=tmp_path).model_dump()
     )
     assert events.events == []
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        lambda s: setattr(s, "log_level", "debug"),
+        lambda s: setattr(s, "processing", ProcessingConfig()),
+        lambda s: setattr(s.processing, "min_targets", 9),
+        lambda s: setattr(s.cameras[0], "exposure_us", 900.0),
+        lambda s: setattr(s.cameras[0].strobe, "enabled", False),
+        lambda s: setattr(s.robot, "transport_latency_s", 0.001),
+        lambda s: setattr(s.server, "port", 9000),
+        lambda s: s.cameras.__setitem__(0, CameraConfig()),  # a tuple: no item assignment
+        lambda s: s.server.allowed_hosts.append("example.org"),  # a tuple: no append
+    ],
+)
+def test_settings_cannot_be_changed_in_place(change):
+    s = Settings()
+    before = s.model_dump()
+    with pytest.raises((ValueError, TypeError, AttributeError)):
+        change(s)
+    assert s.model_dump() == before
+
+
+def test_a_change_is_a_new_settings_object_and_the_old_one_keeps_its_values():
+    old = Settings()
+    new = old.with_camera(old.cameras[0].model_copy(update={"exposure_us": 900.0}))
+    new = new.with_processing(new.processing.model_copy(update={"min_targets": 9}))
+    assert (new.cameras[0].exposure_us, new.processing.min_targets) == (900.0, 9)
+    assert (old.cameras[0].exposure_us, old.processing.min_targets) == (2000.0, 6)
+    assert isinstance(new.cameras, tuple) and new.server is old.server  # the untouched sections are shared
+
+
+def test_with_camera_refuses_an_unknown_camera_and_another_driver():
+    s = Settings()
+    with pytest.raises(KeyError, match="cam9"):
+        s.with_camera(CameraConfig(name="cam9"))
+    with pytest.raises(ValueError, match="driver"):
+        s.with_camera(CameraConfig(driver="aravis"))
+    with pytest.raises(ValueError, match="driver"):
+        s.with_camera(CameraConfig(options={"seed": 3}))
+
+
+def test_runtime_overrides_keep_a_variable_of_the_environment_from_undoing_them(monkeypatch):
+    # a change is never validated as a whole Settings again: that would read the environment again
+    monkeypatch.setenv("POSECELL_PROCESSING__MIN_TARGETS", "8")
+    s = load_settings(None)
+    assert s.processing.min_targets == 8
+    assert with_runtime_overrides(s, {"processing": {"min_targets": 9}}).processing.min_targets == 9
+
+
+def test_processing_refuses_area_limits_out_of_order(tmp_path):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[processing]\nmin_area_px = 500\nmax_area_px = 400\n")
+    with pytest.raises(SettingsError, match="min_area_px 500 is larger than max_area_px 400"):
+        load_settings(cfg)

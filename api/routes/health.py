@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 from fastapi.responses import PlainTextResponse
 
 from api.deps import HubDep, WorkerDep
@@ -21,8 +21,8 @@ def get_health(worker: WorkerDep, hub: HubDep) -> dict[str, Any]:
 
 
 @router.get("/status", summary="Health plus the configuration in use and the newest result of each camera")
-def get_status(request: Request, worker: WorkerDep, hub: HubDep) -> dict[str, Any]:
-    s = request.app.state.settings
+def get_status(worker: WorkerDep, hub: HubDep) -> dict[str, Any]:
+    s = worker.settings  # the settings in force (PUT /config swaps them there)
     latest = {
         name: {k: d.get(k) for k in ("ok", "reason", "mode", "t_wall", "rms_px", "n_coded", "n_uncoded", "deviation")}
         for name, r in list(worker.latest.items())

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 from pydantic import BaseModel, ConfigDict, Field
 
 from api.deps import WorkerDep
@@ -31,8 +31,8 @@ class FaultRequest(BaseModel):
 
 
 @router.post("/faults", dependencies=[Authorized], summary="Inject a device fault into the simulated cell")
-def post_fault(request: Request, worker: WorkerDep, fault: FaultRequest) -> dict[str, Any]:
-    if not request.app.state.settings.uses_sim:
+def post_fault(worker: WorkerDep, fault: FaultRequest) -> dict[str, Any]:
+    if not worker.settings.uses_sim:
         raise ApiError(
             Reason.not_found, "fault injection exists only in the simulated cell; this cell runs real devices"
         )

@@ -3,7 +3,7 @@
 ``camera`` is the self-calibrating bundle adjustment of one camera (camera.json, optionally the surveyed
 field); ``rig`` the relative orientation of rigidly mounted cameras (rig.json). Both measure images of a
 target field (or take given observations) and share the options of the adjustment and of the detector;
-the work is in :mod:`service.workflows.calibrate_camera`.
+the work is in :mod:`service.workflows.calibrate_camera` and :mod:`service.workflows.calibrate_rig`.
 """
 
 from __future__ import annotations
@@ -154,7 +154,7 @@ def run_camera(args: argparse.Namespace) -> int:
 
 def run_rig(args: argparse.Namespace) -> int:
     """Calibrate the rig's relative orientation; writes rig.json."""
-    from service.workflows.calibrate_camera import rig_options, rig_summary, run_rig_calibration
+    from service.workflows.calibrate_rig import rig_options, rig_summary, run_rig_calibration
 
     return _calibrate(
         "rig",

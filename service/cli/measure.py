@@ -7,7 +7,6 @@ with its reason and the run goes on; the exit code is 1 only when no image could
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 from service.cli.common import EXIT_FAILED, Subparsers, print_err, print_json
 
@@ -60,33 +59,21 @@ def add_parser(subparsers: Subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from service.core.results import Failure, Reason
-    from service.core.targets.codes import FAMILIES
-    from service.core.targets.detect import DetectSettings
     from service.pipeline.measure import FrameMeasurer, MeasureSettings
     from service.store import formats
 
     camera = formats.read_camera(args.camera)
     field = formats.read_field(args.field)
-    # only the options given: the detector's own defaults stay the one place they are set
-    detect = DetectSettings(
-        **{
-            k: v
-            for k, v in (
-                ("min_contrast_dn", args.min_contrast_dn),
-                ("min_area_px", args.min_area_px),
-                ("max_area_px", args.max_area_px),
-            )
-            if v is not None
-        }
-    )
-    settings = MeasureSettings(
+    # the options by the service's [processing] names; None (not given): the defaults, set in one place
+    settings = MeasureSettings.from_options(
+        code_family=args.code_family,
+        min_contrast_dn=args.min_contrast_dn,
+        min_area_px=args.min_area_px,
+        max_area_px=args.max_area_px,
         sigma_px=args.sigma_px,
+        max_sigma0_px=args.max_sigma0_px,
         correct_eccentricity=not args.no_eccentricity,
-        detect=detect,
-        code_family=FAMILIES[args.code_family],
     )
-    if args.max_sigma0_px is not None:
-        settings = dataclasses.replace(settings, max_sigma0_px=args.max_sigma0_px)
     measurer = FrameMeasurer(camera, field, settings)
     failed = 0
     for path in args.images:

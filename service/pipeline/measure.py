@@ -28,7 +28,7 @@ from service.core.geometry.camera_model import BrownFraser
 from service.core.pose.resection import ResectionResult, resect
 from service.core.pose.tracking import PoseSample, predict_pose
 from service.core.results import Failure, PoseResult, Reason, SolveError, TargetObservation
-from service.core.targets.codes import POSECELL12, CodeFamily
+from service.core.targets.codes import FAMILIES, POSECELL12, CodeFamily
 from service.core.targets.decode import read_codes
 from service.core.targets.decode import warm_up as decode_warm_up
 from service.core.targets.detect import Blobs, DetectSettings, detect_blobs, measure_windows
@@ -119,6 +119,53 @@ class MeasureSettings:
     # nearest and farthest camera-to-target distance, mm: if given, blobs smaller or larger than any
     # target of the field can appear there are not measured (:func:`detect_settings_for_range`)
     range_mm: tuple[float, float] | None = None
+
+    @classmethod
+    def from_options(
+        cls,
+        *,
+        code_family: str | None = None,
+        min_contrast_dn: float | None = None,
+        min_area_px: int | None = None,
+        max_area_px: int | None = None,
+        min_coded: int | None = None,
+        min_targets: int | None = None,
+        sigma_px: float | None = None,
+        max_sigma0_px: float | None = None,
+        correct_eccentricity: bool = True,
+        roi_tracking: bool = True,
+        range_mm: tuple[float, float] | None = None,
+    ) -> MeasureSettings:
+        """The settings of the measuring options as the service's ``[processing]`` section, ``posecell
+        measure`` and ``posecell calibrate camera`` name them (the one mapping of those knobs).
+
+        A ``None`` leaves the default: the detector's (:class:`DetectSettings`) for ``min_contrast_dn``
+        (8-bit DN), ``min_area_px`` and ``max_area_px`` (px), this class's for the others;
+        ``sigma_px`` (px) None is its default, the detector's own precision. ``code_family`` is a name of
+        :data:`service.core.targets.codes.FAMILIES`; ``roi_tracking`` is :attr:`roi`; ``range_mm``
+        (nearest, farthest; mm) narrows the area limits to the field's targets.
+        """
+        if code_family is not None and code_family not in FAMILIES:
+            raise ValueError(f"unknown code family {code_family!r}; choose from {', '.join(FAMILIES)}")
+        d, m = DetectSettings(), cls()  # the defaults, each written once: in those classes
+        detect = replace(
+            d,
+            min_contrast_dn=d.min_contrast_dn if min_contrast_dn is None else min_contrast_dn,
+            min_area_px=d.min_area_px if min_area_px is None else min_area_px,
+            max_area_px=d.max_area_px if max_area_px is None else max_area_px,
+        )
+        return replace(
+            m,
+            detect=detect,
+            code_family=m.code_family if code_family is None else FAMILIES[code_family],
+            min_coded=m.min_coded if min_coded is None else min_coded,
+            min_targets=m.min_targets if min_targets is None else min_targets,
+            sigma_px=sigma_px,
+            max_sigma0_px=m.max_sigma0_px if max_sigma0_px is None else max_sigma0_px,
+            correct_eccentricity=correct_eccentricity,
+            roi=roi_tracking,
+            range_mm=range_mm,
+        )
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,6 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from dataclasses import replace
 from types import MappingProxyType
 from typing import Any
 
@@ -28,31 +27,27 @@ from drivers.base import Frame, RobotDriver
 from service.core.measurement import Flange, Measurement
 from service.core.pose.timesync import TimeOffsetFit, estimate_time_offset_s
 from service.core.results import Failure, PoseResult, Reason
-from service.core.targets.codes import FAMILIES
-from service.core.targets.detect import DetectSettings
 from service.pipeline.flange import flange_part
 from service.pipeline.measure import FrameMeasurer, MeasureSettings
 from service.runtime.acquisition import DeviceState
 from service.runtime.calibration_state import CalibrationState
 from service.runtime.pairing import FramePairer
-from service.settings import ProcessingConfig, Settings
+from service.settings import CameraConfig, ProcessingConfig, Settings
 
 
 def measure_settings(p: ProcessingConfig) -> MeasureSettings:
-    detect = DetectSettings()
-    if p.min_contrast_dn is not None:
-        detect = replace(detect, min_contrast_dn=p.min_contrast_dn)
-    if p.max_area_px is not None:
-        detect = replace(detect, max_area_px=p.max_area_px)
-    return MeasureSettings(
-        detect=detect,
+    """The measurer's settings of the ``[processing]`` options (the mapping is :meth:`MeasureSettings.from_options`)."""
+    return MeasureSettings.from_options(
+        code_family=p.code_family,
+        min_contrast_dn=p.min_contrast_dn,
+        min_area_px=p.min_area_px,
+        max_area_px=p.max_area_px,
         min_coded=p.min_coded,
         min_targets=p.min_targets,
         sigma_px=p.sigma_px,
         max_sigma0_px=p.max_sigma0_px,
         correct_eccentricity=p.correct_eccentricity,
-        roi=p.roi_tracking,
-        code_family=FAMILIES[p.code_family],
+        roi_tracking=p.roi_tracking,
     )
 
 
@@ -61,7 +56,10 @@ class CameraProcessor:
 
     def __init__(self, name: str, settings: Settings, calibration: CalibrationState) -> None:
         self.name = name
+        # the worker's current settings (frozen): the worker puts the new object here on a change, and
+        # the measurer is rebuilt before the next frame when its processing options are another object
         self.settings = settings
+        self._processing: ProcessingConfig | None = None  # what the measurer was built with
         self.calibration = calibration
         cam_cfg = next(c for c in settings.cameras if c.name == name)
         self.pairer = FramePairer(cam_cfg.transport_latency_s, settings.robot.transport_latency_s)
@@ -75,7 +73,8 @@ class CameraProcessor:
         # host monotonic -> wall clock, fixed at start (results carry both)
         self._wall_minus_mono_ns = time.time_ns() - time.monotonic_ns()
 
-    def set_camera_config(self, cfg: Any) -> None:
+    def set_camera_config(self, cfg: CameraConfig) -> None:
+        """The camera's new configuration (its transport latency) is in force from the next frame."""
         self.pairer.camera_latency_ns = cfg.transport_latency_s * 1e9
         self.pairer.camera_clock.reset()  # a new exposure or frame rate changes the arrival pattern
 
@@ -84,13 +83,13 @@ class CameraProcessor:
         self._current_measurer()
 
     def _current_measurer(self) -> FrameMeasurer | None:
-        cal = self.calibration
-        if cal.generation != self._generation:
-            self._generation = cal.generation
+        cal, processing = self.calibration, self.settings.processing
+        if cal.generation != self._generation or processing is not self._processing:
+            self._generation, self._processing = cal.generation, processing
             if cal.camera is None or cal.field is None:
                 self._measurer = None
             else:
-                self._measurer = FrameMeasurer(cal.camera, cal.field, measure_settings(self.settings.processing))
+                self._measurer = FrameMeasurer(cal.camera, cal.field, measure_settings(processing))
         return self._measurer
 
     def process(self, frame: Frame, robot: RobotDriver | None, robot_state: DeviceState) -> Measurement:

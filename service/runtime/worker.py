@@ -44,7 +44,7 @@ from service.core.measurement import Measurement
 from service.core.results import Failure, Reason
 from service.runtime.acquisition import CameraChannel, DeviceState
 from service.runtime.calibration_state import CalibrationState
-from service.runtime.cell_runtime import CellRuntime
+from service.runtime.cell_runtime import CellRuntime, with_stated_latencies
 from service.runtime.processor import CameraProcessor
 from service.runtime.rig_combiner import RIG, RigCombiner
 from service.runtime.solver_process import SolverProcess
@@ -82,7 +82,10 @@ class Worker:
         *,
         calib_store: Any = None,
     ) -> None:
-        self.settings = settings
+        # the current settings, the one copy the service reads (the API too): frozen, swapped whole by
+        # reconfigure_camera and update_processing; with the simulated devices' delivery delays stated
+        self.settings = settings = with_stated_latencies(settings)
+        self._settings_lock = threading.Lock()  # a change is a read-modify-write of self.settings
         self.store = store
         self.cell = CellRuntime(settings, on_event=self.event)  # the simulated cell and its stand-ins
         # built once: from the stored calibrations (``calib_store``), else the settings' and the simulated cell's
@@ -218,21 +221,34 @@ class Worker:
     # --- run-time changes (from the API's threads) ----------------------------------------------
 
     def reconfigure_camera(self, cfg: CameraConfig) -> str:
-        """Apply new camera settings in the camera's thread; "" or the driver's error sentence."""
-        ch = self.cameras.get(cfg.name)
-        if ch is None:
-            return f"camera {cfg.name} is not running"
-        if ch.state is not DeviceState.ok:
-            ch.settings = cfg.camera_settings()  # applied when it (re)connects
-            return ""
-        error = ch.request_settings(cfg.camera_settings())
-        if not error:
+        """Apply new camera settings in the camera's thread; "" or the driver's error sentence.
+
+        Applied, :attr:`settings` becomes a new object with ``cfg`` for that camera; refused (the
+        error sentence), nothing changes. ``cfg`` must name a configured camera with its driver.
+        """
+        with self._settings_lock:
+            new = self.settings.with_camera(cfg)
+            ch = self.cameras.get(cfg.name)
+            if ch is None:
+                return f"camera {cfg.name} is not running"
+            if ch.state is not DeviceState.ok:
+                ch.settings = cfg.camera_settings()  # applied when it (re)connects
+            else:
+                error = ch.request_settings(cfg.camera_settings())
+                if error:
+                    return error
             self.processors[cfg.name].set_camera_config(cfg)
-        return error
+            self.settings = new
+            for proc in self.processors.values():
+                proc.settings = new
+        return ""
 
     def update_processing(self, processing: ProcessingConfig) -> None:
-        self.settings.processing = processing
-        self.calibration.touch()  # processors rebuild their measurers before the next frame
+        """Measure with ``processing`` from the next frame on (:attr:`settings` becomes a new object)."""
+        with self._settings_lock:
+            self.settings = new = self.settings.with_processing(processing)
+            for proc in self.processors.values():
+                proc.settings = new  # it rebuilds its measurer: the processing options are another object
 
     # --- events, subscribers ---------------------------------------------------------------------
 

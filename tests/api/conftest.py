@@ -91,6 +91,11 @@ def run_server(settings: Settings) -> Iterator[LiveServer]:
 @pytest.fixture(scope="module")
 def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
     state: Path = tmp_path_factory.mktemp("state")
-    settings = load_settings(None, state_dir=str(state), server__port=free_port(), server__token="test-token")
-    settings.cameras[0].frame_rate_hz = 15.0
+    settings = load_settings(
+        None,
+        state_dir=str(state),
+        server__port=free_port(),
+        server__token="test-token",
+        cameras=[{"frame_rate_hz": 15.0}],
+    )
     yield from run_server(settings)

@@ -19,9 +19,14 @@ from tests.api.conftest import free_port, run_server
 @pytest.fixture(scope="module")
 def uncalibrated(tmp_path_factory):
     state = tmp_path_factory.mktemp("state-he")
-    settings = load_settings(None, state_dir=str(state), server__port=free_port(), server__token="t")
-    settings.sim.program = "hold"
-    settings.sim.preload_handeye = False
+    settings = load_settings(
+        None,
+        state_dir=str(state),
+        server__port=free_port(),
+        server__token="t",
+        sim__program="hold",
+        sim__preload_handeye=False,
+    )
     yield from run_server(settings)
 
 

@@ -43,8 +43,8 @@ def edge(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
         server__timeout_header_s=TIMEOUT_S,
         server__timeout_body_s=TIMEOUT_S,
         server__timeout_keep_alive_s=TIMEOUT_S,
+        cameras=[{"frame_rate_hz": 10.0}],
     )
-    settings.cameras[0].frame_rate_hz = 10.0
     yield from run_server(settings)
 
 

@@ -234,10 +234,14 @@ def test_every_result_carries_its_exposure_instant_on_the_wall_clock(live):
 
 
 def test_fault_injection_is_not_found_when_the_cell_is_not_simulated(tmp_path):
-    settings = load_settings(None, state_dir=str(tmp_path), server__port=free_port(), server__token="t")
-    settings.cameras[0].driver = "v4l2"
-    settings.cameras[0].options = {"device": str(tmp_path / "no-such-video-device")}
-    settings.robot.driver = "none"
+    settings = load_settings(
+        None,
+        state_dir=str(tmp_path),
+        server__port=free_port(),
+        server__token="t",
+        cameras=[{"driver": "v4l2", "options": {"device": str(tmp_path / "no-such-video-device")}}],
+        robot__driver="none",
+    )
     assert not settings.uses_sim
     for live in run_server(settings):
         with live.client() as c:

@@ -21,9 +21,7 @@ T_MASTER_CAM1 = make_T(
 @pytest.fixture(scope="module")
 def rig_cell(tmp_path_factory):
     state = tmp_path_factory.mktemp("state-rig")
-    settings = load_settings(None, state_dir=str(state), server__port=free_port(), server__token="t")
-    settings.sim.program = "hold"
-    settings.cameras = [
+    cameras = [
         CameraConfig(name="cam0", frame_rate_hz=8.0),
         CameraConfig(
             name="cam1",
@@ -31,6 +29,9 @@ def rig_cell(tmp_path_factory):
             options={"T_master_camera": T_MASTER_CAM1.tolist(), "seed": 7, "serial": "SIM-0002"},
         ),
     ]
+    settings = load_settings(
+        None, state_dir=str(state), server__port=free_port(), server__token="t", sim__program="hold", cameras=cameras
+    )
     yield from run_server(settings)
 
 

@@ -158,9 +158,12 @@ def test_the_runtime_states_the_simulated_controllers_own_delay():
 
     assert inspect.signature(SimRobot).parameters["latency_s"].default == cell_runtime.SIM_ROBOT_LATENCY_S
     settings = load_settings(None, sim__transport="direct")
-    runtime = cell_runtime.CellRuntime(settings)
-    runtime.start()
-    try:
-        assert settings.robot.transport_latency_s == cell_runtime.SIM_ROBOT_LATENCY_S
-    finally:
-        runtime.stop()
+    stated = cell_runtime.with_stated_latencies(settings)
+    assert stated.robot.transport_latency_s == cell_runtime.SIM_ROBOT_LATENCY_S
+    assert settings.robot.transport_latency_s == 0.0  # a new object: the given settings are not changed
+    assert Worker(settings).settings.robot.transport_latency_s == cell_runtime.SIM_ROBOT_LATENCY_S
+    standins = cell_runtime.with_stated_latencies(load_settings(None, sim__transport="standins"))
+    assert standins.robot.transport_latency_s == cell_runtime.STANDIN_ROBOT_LATENCY_S
+    assert standins.cameras[0].transport_latency_s == cell_runtime.STANDIN_CAMERA_LATENCY_S
+    real = load_settings(None, robot__driver="none", cameras=[{"driver": "v4l2"}])
+    assert cell_runtime.with_stated_latencies(real) is real

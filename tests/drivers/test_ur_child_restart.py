@@ -68,8 +68,9 @@ def test_the_worker_reports_a_killed_rtde_child_before_it_reconnects(tmp_path) -
     from service.settings import load_settings
 
     host = "127.0.0.18"  # this test's own address
-    settings = load_settings(None, state_dir=str(tmp_path))
-    settings.robot.driver, settings.robot.options = "ur", {"host": host, "frequency_hz": 125.0}
+    settings = load_settings(
+        None, state_dir=str(tmp_path), robot__driver="ur", robot__options={"host": host, "frequency_hz": 125.0}
+    )
     with RtdeServer(DemoArm(), host=host):
         worker = Worker(settings)
         worker.start()
