@@ -15,6 +15,7 @@ CAMERAS: dict[str, str] = {
     "sim": "drivers.camera.sim:SimCamera",
     "aravis": "drivers.camera.aravis:AravisCamera",
     "v4l2": "drivers.camera.v4l2:V4L2Camera",
+    "replay": "drivers.camera.replay:ReplayCamera",
 }
 
 ROBOTS: dict[str, str] = {

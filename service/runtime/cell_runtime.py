@@ -17,6 +17,11 @@ A watchdog thread restarts a stand-in whose process ended (a crash, a kill),
 with the same cell and epoch, and reports it through ``on_event(level, kind,
 message)`` (the worker's event log) as ``standin_died`` and ``standin_restarted``;
 restarts back off from 1 s to 30 s while a stand-in keeps dying.
+
+The simulated devices' delivery delays, which the clock mappings cannot see, are
+stated as an installation states its own devices': :func:`with_stated_latencies`
+gives the settings with them, and the worker is built with those (settings are
+frozen: nothing here changes the settings it was given).
 """
 
 from __future__ import annotations
@@ -50,6 +55,29 @@ STANDIN_ROBOT_LATENCY_S = 0.0002
 SIM_ROBOT_LATENCY_S = 0.001
 
 EventSink = Callable[[str, str, str], None]
+
+
+def with_stated_latencies(settings: Settings) -> Settings:
+    """``settings`` with the simulated devices' delivery delays stated (a new object; the same if none is simulated).
+
+    The in-process simulated controller delivers its samples ``SIM_ROBOT_LATENCY_S`` late (without it
+    stated the simulated cell's deviation carries a lag bias: 0.19 mm on the 190 mm/s circle); with
+    ``sim.transport = "standins"`` the loopback stand-ins deliver frames ``STANDIN_CAMERA_LATENCY_S``
+    and samples ``STANDIN_ROBOT_LATENCY_S`` after their instants. Real devices keep what is configured.
+    """
+    if not settings.uses_sim:
+        return settings
+    out = settings
+    standins = settings.sim.transport == "standins"
+    if settings.robot.driver == "sim":
+        latency_s = STANDIN_ROBOT_LATENCY_S if standins else SIM_ROBOT_LATENCY_S
+        out = out.model_copy(update={"robot": out.robot.model_copy(update={"transport_latency_s": latency_s})})
+    if standins:
+        # frames rendered ahead leave right after their exposure: copy and loopback transfer
+        for c in settings.cameras:
+            if c.driver == "sim":
+                out = out.with_camera(c.model_copy(update={"transport_latency_s": STANDIN_CAMERA_LATENCY_S}))
+    return out
 
 
 def _log_event(level: str, kind: str, message: str) -> None:
@@ -115,6 +143,9 @@ class StandInProcess:
 
 
 class CellRuntime:
+    """The simulated cell of ``settings`` (its ``sim`` section and which devices are simulated, which
+    no run-time change touches) and its stand-in processes."""
+
     def __init__(self, settings: Settings, on_event: EventSink | None = None) -> None:
         self.settings = settings
         self.active = settings.uses_sim
@@ -143,14 +174,7 @@ class CellRuntime:
             return
         cell = self.cell  # build it (inverse kinematics of the program) before the drivers need it
         if not self.standins:
-            # the simulated controller delivers its samples 1 ms late; stated, as an installation
-            # states its controller's, so that the simulated cell's deviation carries no lag bias
-            # (0.19 mm on the 190 mm/s circle)
-            if self.settings.robot.driver == "sim":
-                self.settings.robot.transport_latency_s = SIM_ROBOT_LATENCY_S
             return
-        if self.settings.robot.driver == "sim":  # before the worker builds its pairers from it
-            self.settings.robot.transport_latency_s = STANDIN_ROBOT_LATENCY_S
         import drivers.standins.gv_camera  # noqa: F401 -- fail here, with the reason, if Aravis is missing
 
         common = ["--epoch-ns", str(self.epoch_ns), "--cell", json.dumps(cell.config.to_dict())]
@@ -223,11 +247,11 @@ class CellRuntime:
 
     def camera_driver(self, cfg: CameraConfig) -> tuple[str, dict[str, Any]]:
         """The registry name and options of a configured camera (the simulated one is substituted here)."""
+        if cfg.driver == "replay" and str(cfg.options.get("source", "sim")) == "sim":
+            return "replay", {"cell": self.cell, **cfg.options}  # it renders this cell's config, ahead
         if cfg.driver != "sim":
             return cfg.driver, dict(cfg.options)
         if self.standins:
-            # frames rendered ahead leave right after their exposure: copy and loopback transfer
-            cfg.transport_latency_s = STANDIN_CAMERA_LATENCY_S
             # a UDP socket: arrival stamps within ~0.3 ms (the packet-socket ring batches for 5 ms)
             return "aravis", {"device": GV_ADDRESS, "packet_size": 8192, "packet_socket": False}
         return "sim", {"cell": self.cell, "epoch_ns": self.epoch_ns, **cfg.options}
