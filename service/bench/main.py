@@ -26,10 +26,19 @@ def _faults(args: argparse.Namespace) -> str:
     return bench_faults.run(rounds=args.rounds)
 
 
+def _service(args: argparse.Namespace) -> str:
+    from service.bench import service as bench_service
+
+    rates = tuple(float(r) for r in args.rates.split(","))
+    clients = tuple(int(c) for c in args.clients.split(","))
+    return bench_service.run(rates_hz=rates, clients=clients, seconds=args.seconds)
+
+
 SECTIONS: dict[str, Callable[[argparse.Namespace], str]] = {
     "accuracy": _accuracy,
     "speed": _speed,
     "faults": _faults,
+    "service": _service,
 }
 
 

@@ -18,7 +18,7 @@ def add_parser(subparsers: Subparsers) -> None:
         "sections",
         nargs="*",
         default=[],
-        help="sections to run (default: all): accuracy, speed, faults",
+        help="sections to run (default: all): accuracy, speed, faults, service",
     )
     b.add_argument("--frames", type=int, default=120, help="rendered frames for the speed section")
     b.add_argument(
@@ -30,6 +30,9 @@ def add_parser(subparsers: Subparsers) -> None:
     b.add_argument("--trials", type=int, default=500, help="Monte-Carlo trials for the accuracy tables")
     b.add_argument("--seed", type=int, default=1)
     b.add_argument("--rounds", type=int, default=5, help="repetitions of each fault for the faults section")
+    b.add_argument("--rates", default="100,250,500,1000", help="camera frame rates, Hz, for the service section")
+    b.add_argument("--clients", default="1,50", help="numbers of WebSocket clients for the service section")
+    b.add_argument("--seconds", type=float, default=10.0, help="measured seconds per row of the service section")
     b.set_defaults(func=run)
 
 

@@ -1,0 +1,199 @@
+"""``posecell bench service``: the running service end to end, measured from the outside.
+
+For each frame rate and number of WebSocket clients it starts ``posecell serve``
+in a child process (real HTTP and WebSocket on loopback, storage on: every
+result committed) with the ``replay`` camera (the simulated cell's path
+rendered once, ahead, in another process, so the renderer does not compete with
+the measurement) and the simulated robot. After a warm-up the clients, in a
+process of their own, read ``/ws/poses`` for ``seconds``; one of them (the
+probe) stamps every message on arrival. Reported per row:
+
+- *results/s*: messages the probe received per second;
+- *lost*: frames exposed in the window whose result never reached the probe
+  (gaps in ``seq``: frames the measurement could not keep up with, plus
+  messages dropped for a slow client);
+- *exposure → WebSocket* p50/p99/max: the probe's arrival (host wall clock)
+  minus the message's ``t_exposure_unix_ns`` — what a client sees;
+- *exposure → SQLite commit* p99: from the store's own count (``/health``);
+- *CPU/frame*: the service process's user + system CPU time over the window
+  divided by the frames it measured (all its threads: acquisition, measurement,
+  fan-out, storage).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+RATES_HZ = (100, 250, 500, 1000)
+CLIENTS = (1, 50)
+_CLOCK_TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
+
+
+def _config(rate_hz: float) -> str:
+    return f"""
+[[cameras]]
+name = "cam0"
+driver = "replay"
+frame_rate_hz = {rate_hz}
+options = {{ source = "sim" }}
+
+[storage]
+stream_every_s = 0.0  # every result committed
+"""
+
+
+@contextmanager
+def _service(state_dir: Path, rate_hz: float) -> Iterator[tuple[str, int]]:
+    """``posecell serve`` with the replay camera in a child process: (base URL, its pid)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    config = state_dir / "bench.toml"
+    config.write_text(_config(rate_hz))
+    env = {**os.environ, "POSECELL_SERVER__TOKEN": "bench", "POSECELL_LOG_LEVEL": "warning"}
+    cmd = [sys.executable, "-m", "service.cli.main", "serve", "--config", str(config)]
+    cmd += ["--port", str(port), "--state-dir", str(state_dir)]
+    child = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        yield f"127.0.0.1:{port}", child.pid
+    finally:
+        child.terminate()
+        try:
+            child.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait(timeout=5)
+        if child.stderr is not None:
+            child.stderr.close()
+
+
+def _cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) * _CLOCK_TICK_S  # utime, stime
+
+
+def _int_after(text: str, key: str) -> int | None:
+    """The integer after ``"key":`` in a message, without parsing the whole JSON (the probe keeps up)."""
+    i = text.find(key)
+    if i < 0:
+        return None
+    i += len(key)
+    while i < len(text) and text[i] == " ":
+        i += 1
+    j = i
+    while j < len(text) and (text[j].isdigit() or text[j] == "-"):
+        j += 1
+    return int(text[i:j]) if j > i else None
+
+
+async def _clients(address: str, n_clients: int, seconds: float) -> list[tuple[int, int, int]]:
+    """Read ``/ws/poses`` with ``n_clients`` for ``seconds``; the probe's (arrival ns, exposure ns, seq)."""
+    from websockets.asyncio.client import connect
+
+    probe: list[tuple[int, int, int]] = []
+    stop_at = time.monotonic() + seconds
+
+    async def client(is_probe: bool) -> None:
+        async with connect(f"ws://{address}/ws/poses?camera=cam0", max_size=None) as ws:
+            await ws.recv()  # the newest result at connection: not part of the window
+            while (left := stop_at - time.monotonic()) > 0:
+                try:
+                    text = await asyncio.wait_for(ws.recv(), left)
+                except TimeoutError:
+                    break
+                if is_probe:
+                    t_ns = time.time_ns()
+                    assert isinstance(text, str)
+                    exposure, seq = _int_after(text, '"t_exposure_unix_ns":'), _int_after(text, '"seq":')
+                    if exposure is not None and seq is not None:
+                        probe.append((t_ns, exposure, seq))
+
+    await asyncio.gather(client(True), *(client(False) for _ in range(n_clients - 1)))
+    return probe
+
+
+def _health(address: str) -> dict[str, Any]:
+    import httpx
+
+    return httpx.get(f"http://{address}/health", timeout=5.0).json()
+
+
+def _wait_ready(address: str, timeout_s: float) -> None:
+    import httpx
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            h = _health(address)
+            if h["processing"]["ok"] > 0 and h["status"] in ("ok", "degraded"):
+                return
+        except (httpx.TransportError, KeyError, ValueError):
+            pass
+        time.sleep(0.2)
+    raise TimeoutError(f"the service at {address} gave no pose within {timeout_s:.0f} s")
+
+
+def _quantile(values: list[float], q: float) -> float:
+    s = sorted(values)
+    return s[min(len(s) - 1, int(q * len(s)))] if s else float("nan")
+
+
+def measure(rate_hz: float, n_clients: int, seconds: float, warmup_s: float = 3.0) -> dict[str, Any]:
+    """One row of the table (see the module docstring)."""
+    with tempfile.TemporaryDirectory() as state, _service(Path(state), rate_hz) as (address, pid):
+        _wait_ready(address, timeout_s=300.0)
+        time.sleep(warmup_s)  # the ROI tracking locked on, the clock fits settled
+        h0, cpu0 = _health(address), _cpu_s(pid)
+        probe = asyncio.run(_clients(address, n_clients, seconds))
+        h1, cpu1 = _health(address), _cpu_s(pid)
+    if len(probe) < 2:
+        raise RuntimeError(f"{rate_hz} Hz, {n_clients} clients: the probe received {len(probe)} results")
+    latency_ms = [(t - e) * 1e-6 for t, e, _ in probe]
+    seqs = [s for _, _, s in probe]
+    span_s = (probe[-1][0] - probe[0][0]) * 1e-9
+    exposed = seqs[-1] - seqs[0] + 1
+    frames = h1["processing"]["results"] - h0["processing"]["results"]
+    commit = (h1.get("storage") or {}).get("commit_latency_ms") or {}
+    return {
+        "rate_hz": rate_hz,
+        "clients": n_clients,
+        "results_per_s": (len(probe) - 1) / span_s if span_s > 0 else float("nan"),
+        "lost_fraction": 1.0 - len(set(seqs)) / exposed,
+        "ws_p50_ms": _quantile(latency_ms, 0.5),
+        "ws_p99_ms": _quantile(latency_ms, 0.99),
+        "ws_max_ms": max(latency_ms),
+        "commit_p99_ms": commit.get("p99", float("nan")),
+        "cpu_ms_per_frame": (cpu1 - cpu0) * 1e3 / frames if frames > 0 else float("nan"),
+        "processing_ms_median": h1["processing"].get("processing_ms_median"),
+    }
+
+
+def run(rates_hz: tuple[float, ...] = RATES_HZ, clients: tuple[int, ...] = CLIENTS, seconds: float = 10.0) -> str:
+    rows = [measure(r, c, seconds) for r in rates_hz for c in clients]
+    lines = [
+        "| camera Hz | clients | results/s | lost | exposure → WS p50 / p99 / max ms "
+        "| exposure → commit p99 ms | CPU ms/frame |",
+        "|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['rate_hz']:.0f} | {r['clients']} | {r['results_per_s']:.0f} | {100 * r['lost_fraction']:.1f} % "
+            f"| {r['ws_p50_ms']:.1f} / {r['ws_p99_ms']:.1f} / {r['ws_max_ms']:.1f} | {r['commit_p99_ms']:.1f} "
+            f"| {r['cpu_ms_per_frame']:.2f} |"
+        )
+    lines.append(
+        f'\n`posecell serve` in a child process, the replay camera (`source = "sim"`), ROI tracking, every '
+        f"result stored; {seconds:.0f} s per row after a warm-up; {os.cpu_count()} cores "
+        f"(`posecell bench service --seconds {seconds:.0f}`)."
+    )
+    return "\n".join(lines)

@@ -1,0 +1,25 @@
+"""``posecell bench service``: the service measured end to end from a client (real child process)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from service.bench import service as bench_service
+
+
+def test_the_probe_reads_exposure_and_seq_without_parsing_the_message():
+    text = json.dumps({"ok": True, "seq": 1234, "t_exposure_unix_ns": 1_764_000_000_123_456_789, "targets": []})
+    assert bench_service._int_after(text, '"seq":') == 1234
+    assert bench_service._int_after(text.replace(" ", ""), '"t_exposure_unix_ns":') == 1_764_000_000_123_456_789
+    assert bench_service._int_after(text, '"missing":') is None
+
+
+@pytest.mark.slow  # starts the service and renders the replay frames
+def test_a_row_of_the_service_benchmark_is_measured_from_the_messages():
+    row = bench_service.measure(rate_hz=100, n_clients=3, seconds=3.0, warmup_s=1.0)
+    assert 20 < row["results_per_s"] <= 110  # a loaded 2-core machine still keeps a good part of 100 Hz
+    assert 0.0 <= row["lost_fraction"] < 0.8
+    assert 0.0 < row["ws_p50_ms"] <= row["ws_p99_ms"] <= row["ws_max_ms"] < 5000.0
+    assert row["commit_p99_ms"] > 0.0 and row["cpu_ms_per_frame"] > 0.0
