@@ -12,10 +12,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from service.core.calib.bundle import Datum, ScaleBar
 from service.core.calib.rig import RigImage, calibrate_rig, rig_from_dict
 from service.core.geometry.frames import inv_T, make_T
 from service.core.pose.intersection import intersect_rays
 from service.core.results import Reason, SolveError
+from service.core.targets.field import Field
 from tests.core.test_bundle import NOISE_PX, TRUE_CAMERA, convergent_poses, field_3d
 
 SECOND_CAMERA = dataclasses.replace(TRUE_CAMERA, c_mm=12.4, x0_mm=-0.02, K1=-9e-4)
@@ -260,3 +262,94 @@ def test_rig_needs_two_cameras_and_known_camera_indices(rng):
         calibrate_rig((TRUE_CAMERA, TRUE_CAMERA), field, [RigImage("e0", 2, ("T0",), np.zeros((1, 2)))])
     assert e.value.reason == Reason.bad_input
     assert inv_T(np.eye(4)).shape == (4, 4)
+
+
+# -- the datum and the inputs: the bundle's checks ------------------------------------------------
+
+
+def with_unseen_target(field: Field, tid: str = "ghost") -> Field:
+    """``field`` plus a target that no image of :func:`rig_images` over ``field`` sees."""
+    return Field(
+        field.name,
+        (*field.ids, tid),
+        np.vstack([field.xyz, [0.0, 0.0, 5000.0]]),
+        np.r_[field.codes, -1],
+        np.r_[field.diameters_mm, 6.0],
+    )
+
+
+@pytest.mark.parametrize("field_fixed", [True, False])
+@pytest.mark.parametrize("tid", ["ghost", "nowhere"])
+def test_a_scale_bar_on_a_target_no_image_saw_is_refused_by_name(rng, field_fixed, tid):
+    # "ghost" is in the field but outside every image; "nowhere" is in neither
+    field = field_3d(rng, 60)
+    cams = (TRUE_CAMERA, SECOND_CAMERA)
+    images = rig_images(rng, field, convergent_poses(rng, 4), cams, (np.eye(4), T_MASTER_CAMERA1))
+    bar = ScaleBar(field.ids[0], tid, 500.0)
+    with pytest.raises(SolveError) as e:
+        calibrate_rig(cams, with_unseen_target(field), images, field_fixed=field_fixed, datum=Datum(scale_bars=(bar,)))
+    assert e.value.reason == Reason.bad_input
+    assert f"{field.ids[0]}-{tid}" in e.value.message and f"target {tid!r}" in e.value.message
+
+
+@pytest.mark.parametrize("distance_mm, sigma_mm", [(500.0, 0.0), (0.0, 0.01), (500.0, float("nan"))])
+def test_a_scale_bar_needs_a_positive_distance_and_sigma(rng, distance_mm, sigma_mm):
+    field = field_3d(rng, 60)
+    cams = (TRUE_CAMERA, SECOND_CAMERA)
+    images = rig_images(rng, field, convergent_poses(rng, 4), cams, (np.eye(4), T_MASTER_CAMERA1))
+    bar = ScaleBar(field.ids[0], field.ids[1], distance_mm, sigma_mm)
+    with pytest.raises(SolveError) as e:
+        calibrate_rig(cams, field, images, field_fixed=False, datum=Datum(scale_bars=(bar,)))
+    assert e.value.reason == Reason.bad_input and "positive distance and sigma" in e.value.message
+
+
+def test_an_image_naming_a_target_twice_or_with_non_finite_pixels_is_refused_by_name(rng):
+    field = field_3d(rng, 60)
+    cams = (TRUE_CAMERA, SECOND_CAMERA)
+    images = rig_images(rng, field, convergent_poses(rng, 4), cams, (np.eye(4), T_MASTER_CAMERA1))
+    im = images[3]
+    twice = dataclasses.replace(im, ids=(*im.ids[:-1], im.ids[0]))
+    nan = dataclasses.replace(im, uv=np.vstack([im.uv[:-1], [np.nan, 10.0]]))
+    unnamed = dataclasses.replace(nan, name="")
+    for bad, words in (
+        (twice, "'cam1-e1' names a target twice"),
+        (nan, "'cam1-e1' has non-finite"),
+        (unnamed, "camera 1 at epoch 'e1'"),
+    ):
+        with pytest.raises(SolveError) as e:
+            calibrate_rig(cams, field, [*images[:3], bad, *images[4:]])
+        assert e.value.reason == Reason.bad_input and words in e.value.message
+
+
+def test_a_rig_with_a_fixed_field_takes_no_control_points(rng):
+    field = field_3d(rng, 60)
+    cams = (TRUE_CAMERA, SECOND_CAMERA)
+    images = rig_images(rng, field, convergent_poses(rng, 4), cams, (np.eye(4), T_MASTER_CAMERA1))
+    with pytest.raises(ValueError, match="field_fixed"):
+        calibrate_rig(cams, field, images, datum=Datum(control=field.ids[:4]))
+
+
+def test_a_surveyed_rig_takes_its_scale_from_a_scale_bar_and_keeps_control_points(rng):
+    # a nominal field 1 % too large: without a bar the baseline comes out 1 % long, with one it is right
+    truth = field_3d(rng, 80)
+    nominal = dataclasses.replace(truth, xyz=truth.xyz * 1.01)
+    cams = (TRUE_CAMERA, SECOND_CAMERA)
+    images = rig_images(rng, truth, convergent_poses(rng, 6), cams, (np.eye(4), T_MASTER_CAMERA1))
+    a, b = 0, int(np.argmax(np.linalg.norm(truth.xyz - truth.xyz[0], axis=1)))
+    length = float(np.linalg.norm(truth.xyz[b] - truth.xyz[a]))
+    bar = ScaleBar(truth.ids[a], truth.ids[b], length, 0.01)
+    kw = {"field_fixed": False, "sigma_px": NOISE_PX, "reject_outliers": False, "jackknife": False}
+    baseline = float(np.linalg.norm(T_MASTER_CAMERA1[:3, 3]))
+    with_bar = calibrate_rig(cams, nominal, images, datum=Datum(scale_bars=(bar,)), **kw)
+    without = calibrate_rig(cams, nominal, images, **kw)
+    assert abs(np.linalg.norm(with_bar.rig.T_master_camera[1, :3, 3]) / baseline - 1.0) < 1e-3
+    assert abs(np.linalg.norm(without.rig.T_master_camera[1, :3, 3]) / baseline - 1.01) < 1e-3
+    i, j = with_bar.field.index[truth.ids[a]], with_bar.field.index[truth.ids[b]]
+    assert abs(np.linalg.norm(with_bar.field.xyz[i] - with_bar.field.xyz[j]) - length) < 0.05
+    # control points, as the bundle takes them: fixed at their (true) coordinates, sigma 0
+    control = tuple(truth.ids[k] for k in (a, b, 10, 20, 30))
+    known = dataclasses.replace(nominal, xyz=np.where(np.isin(truth.ids, control)[:, None], truth.xyz, nominal.xyz))
+    fixed = calibrate_rig(cams, known, images, datum=Datum(control=control), **kw)
+    rows = fixed.field.indices_of(list(control))
+    assert np.array_equal(fixed.field.xyz[rows], truth.xyz[truth.indices_of(list(control))])
+    assert np.all(fixed.sigma_xyz_mm[rows] == 0.0)

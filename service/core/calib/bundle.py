@@ -13,6 +13,9 @@ nominal field's centroid, orientation and, without a scale bar, its scale; the
 minimum-norm covariance) plus any measured distances (:class:`ScaleBar`).
 Targets seen in the images but missing from the field are new points: their
 start values come from forward intersection, and they are surveyed too.
+The network's points and observations, the datum's rows and the checks of both (every
+image, every control point and scale bar) are :mod:`service.core.calib.bundle_network`'s,
+which the rig's calibration (:mod:`service.core.calib.rig`) shares.
 
 Start values: the closed-form resection of the engine, then its least-squares
 refinement (:func:`service.core.pose.resection.resect`), image by image, and forward
@@ -40,6 +43,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.core.calib.bundle_model import RESIDUAL_SPACES
+from service.core.calib.bundle_network import (
+    Datum,
+    ImagePoints,
+    Network,
+    ScaleBar,
+    check_free,
+    collect,
+    datum_rows,
+    interior_sigmas,
+    left_out_warnings,
+    network_field,
+    point_sigmas,
+)
 from service.core.calib.bundle_solve import (
     NetworkInput,
     NetworkSolution,
@@ -71,61 +87,8 @@ PARALLEL_TILT_DEG = 5.0
 #: Below this spread of the images' roll about their optical axes the network has no roll diversity.
 MIN_ROLL_SPREAD_DEG = 45.0
 MIN_IMAGES = 3
-
-
-@dataclass(frozen=True)
-class ImagePoints:
-    """Identified targets in one image: ``ids`` (n,), measured pixels ``uv`` (n, 2) px, and an
-    optional start pose ``T_field_camera`` (4, 4) (e.g. the pipeline's resection)."""
-
-    name: str
-    ids: tuple[str, ...]
-    uv: Array
-    T_field_camera: Array | None = None
-
-
-@dataclass(frozen=True)
-class ScaleBar:
-    """A known distance between two targets (a scale bar), mm, with its standard deviation (> 0)."""
-
-    id_a: str
-    id_b: str
-    distance_mm: float
-    sigma_mm: float = 0.01
-
-
-@dataclass(frozen=True)
-class Datum:
-    """How the adjustment is tied to the field frame.
-
-    ``control``: ids of control points whose field coordinates define the frame
-    (at least 3, not collinear); ``control_sigma_mm`` 0 fixes them, > 0 weights them.
-    With no control points: inner constraints on the nominal coordinates of every
-    observed field target (a free network), with the scale of the nominal field
-    unless ``scale_bars`` give it.
-    """
-
-    control: tuple[str, ...] = ()
-    control_sigma_mm: float = 0.0
-    scale_bars: tuple[ScaleBar, ...] = ()
-
-    def describe(self) -> dict[str, Any]:
-        if self.control:
-            d: dict[str, Any] = {
-                "kind": "control points",
-                "control": list(self.control),
-                "control_sigma_mm": self.control_sigma_mm,
-            }
-        else:
-            d = {
-                "kind": "inner constraints on the nominal field",
-                "scale": "scale bars" if self.scale_bars else "nominal field",
-            }
-        if self.scale_bars:
-            d["scale_bars"] = [
-                {"ids": [b.id_a, b.id_b], "distance_mm": b.distance_mm, "sigma_mm": b.sigma_mm} for b in self.scale_bars
-            ]
-        return d
+#: The default datum: inner constraints on the nominal field, its scale.
+FREE_NETWORK = Datum()
 
 
 @dataclass(frozen=True)
@@ -276,68 +239,6 @@ class BundleResult:
 # -- inputs -------------------------------------------------------------------------
 
 
-def _check_free(free: Sequence[str]) -> tuple[str, ...]:
-    unknown = [n for n in free if n not in PARAMETER_NAMES]
-    if unknown:
-        raise ValueError(f"unknown camera parameters {unknown}; choose from {list(PARAMETER_NAMES)}")
-    return tuple(n for n in PARAMETER_NAMES if n in set(free))
-
-
-@dataclass
-class _Network:
-    ids: list[str]  # network points
-    nominal: Array  # (N, 3), NaN for new points
-    codes: list[int]
-    diameters: list[float]
-    image: NDArray[np.int64]
-    point: NDArray[np.int64]
-    uv: Array
-
-
-def _collect(field: Field, images: Sequence[ImagePoints]) -> _Network:
-    order: dict[str, int] = {}
-    observed = {t for im in images for t in im.ids}
-    ids = [t for t in field.ids if t in observed]
-    for im in images:
-        for t in im.ids:
-            if t not in field.index and t not in order:
-                order[t] = len(order)
-    ids += sorted(order, key=order.__getitem__)
-    index = {t: i for i, t in enumerate(ids)}
-    nominal = np.full((len(ids), 3), np.nan)
-    codes, diameters = [], []
-    for i, t in enumerate(ids):
-        if t in field.index:
-            row = field.index[t]
-            nominal[i] = field.xyz[row]
-            codes.append(int(field.codes[row]))
-            diameters.append(float(field.diameters_mm[row]))
-        else:
-            codes.append(-1)
-            diameters.append(float("nan"))
-    image, point, uv = [], [], []
-    for j, im in enumerate(images):
-        q = np.asarray(im.uv, dtype=np.float64).reshape(-1, 2)
-        if len(q) != len(im.ids):
-            raise ValueError(f"image {im.name!r} has {len(im.ids)} ids but {len(q)} points")
-        if len(set(im.ids)) != len(im.ids):
-            raise SolveError(Reason.bad_input, f"Image {im.name!r} names a target twice.")
-        if not np.all(np.isfinite(q)):
-            raise SolveError(Reason.bad_input, f"Image {im.name!r} has non-finite pixel coordinates.")
-        image += [j] * len(q)
-        point += [index[t] for t in im.ids]
-        uv.append(q)
-    return _Network(
-        ids,
-        nominal,
-        codes,
-        diameters,
-        np.array(image, dtype=np.int64),
-        np.array(point, dtype=np.int64),
-        np.concatenate(uv) if uv else np.zeros((0, 2)),
-    )
-
-
 def _too_few_images(n: int, what: str) -> SolveError:
     return SolveError(
         Reason.degenerate_geometry,
@@ -404,7 +305,7 @@ def calibrate_camera(
     images: Sequence[ImagePoints],
     *,
     free: Sequence[str] = PARAMETER_NAMES,
-    datum: Datum = Datum(),
+    datum: Datum = FREE_NETWORK,
     sigma_px: float = 0.1,
     residual_space: str = "pixel",
     reject_outliers: bool = True,
@@ -445,7 +346,7 @@ def calibrate_camera(
         the interior orientation), ``bad_input`` (a datum that does not fix the frame,
         unknown ids), ``behind_camera``, ``too_few_targets``.
     """
-    free_t = _check_free(free)
+    free_t = check_free(free)
     if residual_space not in RESIDUAL_SPACES:
         raise ValueError(f"residual_space must be one of {RESIDUAL_SPACES}, got {residual_space!r}")
     if not sigma_px > 0:
@@ -453,7 +354,7 @@ def calibrate_camera(
     if len(images) < MIN_IMAGES:
         raise _too_few_images(len(images), "")
     warnings: list[str] = []
-    net = _collect(field, images)
+    net = collect(field, images)
     say = progress or (lambda _s: None)
     say(f"start values: resecting {len(images)} images")
     T_init = [None if im.T_field_camera is None else np.asarray(im.T_field_camera, dtype=np.float64) for im in images]
@@ -465,8 +366,7 @@ def calibrate_camera(
     if oriented.sum() < MIN_IMAGES:
         raise _too_few_images(int(oriented.sum()), "oriented ")
     known = np.all(np.isfinite(p0), axis=1)
-    for i in np.flatnonzero(~known):
-        warnings.append(f"target {net.ids[i]!r} is seen in fewer than two oriented images and is left out")
+    warnings += left_out_warnings(net, p0)
     keep = oriented[net.image] & known[net.point]
     img_map = np.cumsum(oriented) - 1
     station = img_map[net.image[keep]]
@@ -474,39 +374,11 @@ def calibrate_camera(
     kept_images = [images[int(j)] for j in np.flatnonzero(oriented)]
     stations = np.array([params_from_T(inv_T(T)) for T in T0 if T is not None])
 
-    # -- datum
-    point_free = np.ones(len(net.ids), bool)
-    control: dict[int, tuple[Array, float]] = {}
-    index = {t: i for i, t in enumerate(net.ids)}
-    inner = None
-    if datum.control:
-        missing = [t for t in datum.control if t not in field.index]
-        if missing:
-            raise SolveError(Reason.bad_input, f"Control points {missing[:5]} are not in the field.")
-        rows = np.array([index[t] for t in datum.control if t in index and known[index[t]]], dtype=np.int64)
-        if len(rows) < 3 or np.linalg.matrix_rank(p0[rows] - p0[rows].mean(0), tol=1e-6) < 2:
-            raise SolveError(Reason.bad_input, "The datum needs at least 3 observed, non-collinear control points.")
-        for i in rows:
-            control[int(i)] = (net.nominal[i], float(datum.control_sigma_mm))
-            if datum.control_sigma_mm <= 0:
-                point_free[i] = False
-                p0[i] = net.nominal[i]
-    else:
-        rows = np.flatnonzero(np.isfinite(net.nominal).all(axis=1) & known)
-        if len(rows) < 3 or np.linalg.matrix_rank(net.nominal[rows] - net.nominal[rows].mean(0), tol=1e-6) < 2:
-            raise SolveError(Reason.bad_input, "Inner constraints need at least 3 non-collinear field targets.")
-        inner = (rows, net.nominal[rows], 6 if datum.scale_bars else 7)
-    bars = []
-    for b in datum.scale_bars:
-        if b.id_a not in index or b.id_b not in index:
-            raise SolveError(Reason.bad_input, f"Scale bar {b.id_a}-{b.id_b}: a target is not seen in the images.")
-        if not b.sigma_mm > 0 or not b.distance_mm > 0:
-            raise SolveError(Reason.bad_input, f"Scale bar {b.id_a}-{b.id_b} needs a positive distance and sigma.")
-        bars.append((index[b.id_a], index[b.id_b], float(b.distance_mm), float(b.sigma_mm)))
+    rows = datum_rows(datum, field, net, p0)  # the datum and the scale bars, checked
 
     # -- degenerate networks that no adjustment can fix
     T_start = [T for T in T0 if T is not None]
-    geometry = network_geometry(p0[np.unique(point)], T_start)
+    geometry = network_geometry(rows.points[np.unique(point)], T_start)
     if "c_mm" in free_t and geometry["flatness"] < 1e-3 and geometry["max_tilt_deg"] < PARALLEL_TILT_DEG:
         raise SolveError(
             Reason.degenerate_geometry,
@@ -526,11 +398,11 @@ def calibrate_camera(
         stations=stations,
         offsets=np.zeros((0, 6)),
         offsets_free=False,
-        points=p0,
-        point_free=point_free,
-        control=control,
-        bars=tuple(bars),
-        inner=inner,
+        points=rows.points,
+        point_free=rows.point_free,
+        control=rows.control,
+        bars=rows.bars,
+        inner=rows.inner,
         residual_space=residual_space,
         sigma_px=float(sigma_px),
     )
@@ -566,7 +438,7 @@ def _check_determined(
 def _result(
     sol: NetworkSolution,
     network: NetworkInput,
-    net: _Network,
+    net: Network,
     kept: list[ImagePoints],
     free_t: tuple[str, ...],
     datum: Datum,
@@ -579,16 +451,8 @@ def _result(
     C = Q[np.ix_(cols, cols)] * cov_scale
     sd = np.sqrt(np.diag(C))
     corr = C / np.outer(sd, sd)
-    sigma = {n: 0.0 for n in PARAMETER_NAMES}
-    sigma.update({n: float(v) for n, v in zip(free_t, sd, strict=True)})
-    cam = sol.cameras[0]
-    cam = BrownFraser(
-        **{
-            **{k: getattr(cam, k) for k in ("width", "height", "pixel_size_mm")},
-            **dict(zip(PARAMETER_NAMES, cam.params().tolist(), strict=True)),
-            "sigma": sigma,
-        }
-    )
+    sigma = interior_sigmas(sol, 0, free_t)
+    cam = dataclasses.replace(sol.cameras[0], sigma=sigma)
     for a in range(len(free_t)):
         for b in range(a + 1, len(free_t)):
             if abs(corr[a, b]) > WARN_CORRELATION:
@@ -614,26 +478,14 @@ def _result(
             )
         )
     n_pts = len(net.ids)
-    sig_xyz = np.zeros((n_pts, 3))
-    for i in range(n_pts):
-        c = model.point_col[i]
-        if c >= 0:
-            sig_xyz[i] = np.sqrt(np.clip(np.diag(Q[c : c + 3, c : c + 3]), 0.0, None)) * s0
-        elif network.point_free[i]:
-            sig_xyz[i] = np.nan  # left out after rejections
+    sig_xyz = point_sigmas(sol, network.point_free)
     n_rays = np.bincount(network.point[inl], minlength=n_pts)
     ss = np.bincount(network.point[inl], weights=np.sum(res[inl] ** 2, axis=1), minlength=n_pts)
     target_rms = np.sqrt(ss / np.maximum(2 * n_rays, 1))
     target_rms[n_rays == 0] = np.nan
     for i in np.flatnonzero(network.point_free & ~sol.point_used).tolist():
         warnings.append(f"target {net.ids[i]!r} kept fewer than two rays after rejections and is not adjusted")
-    refined = Field(
-        name=name,
-        ids=tuple(net.ids),
-        xyz=sol.points,
-        codes=np.array(net.codes, dtype=np.int64),
-        diameters_mm=np.array(net.diameters),
-    )
+    refined = network_field(name, net, sol.points)
     geometry = network_geometry(sol.points[sol.point_used], [im.T_field_camera for im in images])
     if geometry["roll_spread_deg"] < MIN_ROLL_SPREAD_DEG and {"x0_mm", "y0_mm", "B1", "B2"} & set(free_t):
         warnings.append(

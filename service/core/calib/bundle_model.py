@@ -35,46 +35,15 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from service.core.geometry.camera_model import PARAMETER_NAMES, BrownFraser
+from service.core.geometry.so3 import R_from_rotvec, left_jacobian, skew
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 N_INTERIOR = len(PARAMETER_NAMES)
 RESIDUAL_SPACES = ("pixel", "ideal")
-
-
-def skew3(v: Array) -> Array:
-    """Cross-product matrices (..., 3, 3) of vectors (..., 3)."""
-    z = np.zeros(v.shape[:-1])
-    return np.stack(
-        [
-            np.stack([z, -v[..., 2], v[..., 1]], -1),
-            np.stack([v[..., 2], z, -v[..., 0]], -1),
-            np.stack([-v[..., 1], v[..., 0], z], -1),
-        ],
-        -2,
-    )
-
-
-def left_jacobian(w: Array) -> Array:
-    """SO(3) left Jacobians (..., 3, 3) of rotation vectors (..., 3): ``R(w + dw) = exp([J dw]x) R(w)``."""
-    theta = np.linalg.norm(w, axis=-1)[..., None, None]
-    small = theta < 1e-6
-    t = np.where(small, 1.0, theta)
-    a = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(t)) / t**2)
-    b = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (t - np.sin(t)) / t**3)
-    W = skew3(w)
-    return np.eye(3) + a * W + b * (W @ W)
-
-
-def rotations(w: Array) -> Array:
-    """Rotation matrices (n, 3, 3) of rotation vectors (n, 3)."""
-    if len(w) == 0:
-        return np.zeros((0, 3, 3))
-    return Rotation.from_rotvec(w).as_matrix().reshape(-1, 3, 3)
 
 
 def correction_parameter_jacobian(xb: Array, yb: Array) -> Array:
@@ -127,7 +96,7 @@ def inner_constraint_matrix(p_nominal: Array, n_gauge: int) -> Array:
     C = np.zeros((n_gauge, n, 3))
     for a in range(3):
         C[a, :, a] = 1.0
-    C[3:6] = np.transpose(skew3(q), (2, 0, 1))  # rows of sum_i q_i x dp_i
+    C[3:6] = np.transpose(skew(q), (2, 0, 1))  # rows of sum_i q_i x dp_i
     if n_gauge == 7:
         C[6] = q
     rows = C.reshape(n_gauge, 3 * n)
@@ -339,11 +308,11 @@ class BundleModel:
         return self._geometry(stations, offsets, points)[0]
 
     def _geometry(self, stations: Array, offsets: Array, points: Array) -> tuple[Array, ...]:
-        Rs = rotations(stations[:, :3])
+        Rs = R_from_rotvec(stations[:, :3])
         P = points[self.point]
         Rso = Rs[self.station]
         q = np.einsum("mij,mj->mi", Rso, P) + stations[self.station, 3:]
-        Rk = np.concatenate([np.eye(3)[None], rotations(offsets[:, :3])]) if self.n_cam > 1 else np.eye(3)[None]
+        Rk = np.concatenate([np.eye(3)[None], R_from_rotvec(offsets[:, :3])]) if self.n_cam > 1 else np.eye(3)[None]
         tk = np.concatenate([np.zeros((1, 3)), offsets[:, 3:]]) if self.n_cam > 1 else np.zeros((1, 3))
         Rko = Rk[self.cam]
         pc = np.einsum("mij,mj->mi", Rko, q) + tk[self.cam]
@@ -425,12 +394,12 @@ class BundleModel:
             blocks.append(dint[m][:, :, self.free_idx[k]].ravel())
         Jl_s = left_jacobian(stations[:, :3])[self.station]
         ARk = np.einsum("mij,mjk->mik", A, Rko)
-        d_ws = -np.einsum("mij,mjk,mkl->mil", ARk, skew3(np.einsum("mij,mj->mi", Rso, P)), Jl_s)
+        d_ws = -np.einsum("mij,mjk,mkl->mil", ARk, skew(np.einsum("mij,mj->mi", Rso, P)), Jl_s)
         blocks.append(np.concatenate([d_ws, ARk], axis=2).ravel())
         o = self.offset_obs
         if len(o):
             Jl_k = left_jacobian(offsets[:, :3])[self.cam[o] - 1]
-            d_wk = -np.einsum("mij,mjk,mkl->mil", A[o], skew3(np.einsum("mij,mj->mi", Rko[o], q[o])), Jl_k)
+            d_wk = -np.einsum("mij,mjk,mkl->mil", A[o], skew(np.einsum("mij,mj->mi", Rko[o], q[o])), Jl_k)
             blocks.append(np.concatenate([d_wk, A[o]], axis=2).ravel())
         else:
             blocks.append(np.zeros(0))

@@ -36,11 +36,11 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
-from service.core.calib.bundle_model import BundleModel, ExtraRows, inverse_2x2, left_jacobian, rotations, skew3
+from service.core.calib.bundle_model import BundleModel, ExtraRows, inverse_2x2
 from service.core.geometry.camera_model import BrownFraser
-from service.core.geometry.frames import inv_T, make_T
+from service.core.geometry.frames import inv_T
+from service.core.geometry.so3 import R_from_rotvec, T_from_rotvec, left_jacobian, rotvec_from_R, skew
 from service.core.pose.resection import resect
 from service.core.results import Reason, SolveError
 
@@ -65,12 +65,13 @@ MIN_START_ANGLE_DEG = 2.0
 
 
 def params_from_T(T_a_field: Array) -> Array:
-    """``[w, t]`` (6,) of ``T_a_field`` (maps field into frame a)."""
-    return np.r_[Rotation.from_matrix(T_a_field[:3, :3]).as_rotvec(), T_a_field[:3, 3]]
+    """The station's parameter block ``[w, t]`` (6,) of ``T_a_field`` (maps field into frame a)."""
+    return np.r_[rotvec_from_R(T_a_field[:3, :3]), T_a_field[:3, 3]]
 
 
 def T_from_params(v: Array) -> Array:
-    return make_T(Rotation.from_rotvec(v[:3]).as_matrix(), v[3:6])
+    """``T_a_field`` (4, 4) of a station's parameter block ``[w, t]`` (6,): the inverse of :func:`params_from_T`."""
+    return T_from_rotvec(v[:3], v[3:6])
 
 
 # -- start values -----------------------------------------------------------------
@@ -376,13 +377,13 @@ def gauge_basis(model: BundleModel, x: Array, n_gauge: int) -> Array:
     m = points[model.point_free].mean(axis=0)
     q = points - m
     E = np.zeros((model.n_params, n_gauge))
-    Rs = rotations(stations[:, :3])
+    Rs = R_from_rotvec(stations[:, :3])
     Jl = left_jacobian(stations[:, :3])
     for j in range(model.n_stations):
         c = model.station_col0 + 6 * j
         # R' = exp(-[R g]x) R: a left perturbation -R g, i.e. dw = -Jl^-1 R g
         E[c : c + 3, :3] = -np.linalg.solve(Jl[j], Rs[j])
-        E[c + 3 : c + 6, :3] = -Rs[j] @ skew3(m[None])[0]
+        E[c + 3 : c + 6, :3] = -Rs[j] @ skew(m)
         E[c + 3 : c + 6, 3:6] = -Rs[j]
         if n_gauge == 7:
             E[c + 3 : c + 6, 6] = stations[j, 3:] + Rs[j] @ m
@@ -392,7 +393,7 @@ def gauge_basis(model: BundleModel, x: Array, n_gauge: int) -> Array:
             E[c + 3 : c + 6, 6] = offsets[k, 3:]
     for i in np.flatnonzero(model.point_free):
         c = model.point_col[i]
-        E[c : c + 3, :3] = -skew3(q[i][None])[0]
+        E[c : c + 3, :3] = -skew(q[i])
         E[c : c + 3, 3:6] = np.eye(3)
         if n_gauge == 7:
             E[c : c + 3, 6] = q[i]
@@ -567,13 +568,13 @@ def pose_sigmas(v: Array, cov6: Array) -> tuple[Array, Array]:
     Returns (sigma_rotation_deg (3,) about the parent's axes, sigma_position_mm (3,) of the child's
     origin in the parent frame), from the covariance (6, 6) of ``v``.
     """
-    R = Rotation.from_rotvec(v[:3]).as_matrix()
-    Jl = left_jacobian(np.asarray(v[:3], dtype=np.float64)[None])[0]
+    R = R_from_rotvec(v[:3])
+    Jl = left_jacobian(v[:3])
     C = -R.T @ v[3:]
     Rt = R.T
     L = np.zeros((6, 6))
     L[:3, :3] = -Rt @ Jl
-    L[3:, :3] = np.array([[0, -C[2], C[1]], [C[2], 0, -C[0]], [-C[1], C[0], 0]]) @ (-Rt @ Jl)
+    L[3:, :3] = skew(C) @ (-Rt @ Jl)
     L[3:, 3:] = -Rt
     cov = L @ cov6 @ L.T
     s = np.sqrt(np.clip(np.diag(cov), 0.0, None))

@@ -48,6 +48,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from service.core.geometry.frames import make_T, orientation_report
+from service.core.geometry.so3 import R_from_rotvec, R_mean, left_jacobian, left_jacobian_inv, rotvec_from_R, skew
 from service.core.results import Reason, SolveError
 
 Array = NDArray[np.float64]
@@ -145,15 +146,6 @@ class HandEyeResult:
 # -- small vectorised helpers --------------------------------------------------
 
 
-def _skew(v: Array) -> Array:
-    """``skew(v) @ w == cross(v, w)`` for v (..., 3); returns (..., 3, 3)."""
-    S = np.zeros((*v.shape[:-1], 3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
-
-
 def _poses(T: ArrayLike, name: str) -> Array:
     """``T`` as a float (M, 4, 4) stack of rigid transforms, or an error saying what is wrong."""
     T = np.asarray(T, dtype=np.float64)
@@ -230,7 +222,7 @@ def motion_quality(T_base_flange: ArrayLike) -> dict[str, float]:
         return q
     i, j = np.triu_indices(M, k=1)
     R, _ = _relative(P, i, j)
-    rotvec = Rotation.from_matrix(R).as_rotvec()
+    rotvec = rotvec_from_R(R)
     angle_deg = np.degrees(np.linalg.norm(rotvec, axis=1))
     s = np.linalg.svd(_modified_rodrigues(rotvec), compute_uv=False)
     s = np.pad(s, (0, 3 - len(s)))
@@ -331,18 +323,18 @@ def tsai_lenz(T_base_flange: ArrayLike, T_field_camera: ArrayLike) -> Array:
     i, j = np.triu_indices(len(P), k=1)
     R_A, t_A = _relative(P, i, j)
     R_B, t_B = _relative(C, i, j)
-    rv_A = Rotation.from_matrix(R_A).as_rotvec()
-    rv_B = Rotation.from_matrix(R_B).as_rotvec()
+    rv_A = rotvec_from_R(R_A)
+    rv_B = rotvec_from_R(R_B)
     # A's axis is R_X times B's axis and the angles are equal, so the rotation vectors align.
     R0 = Rotation.align_vectors(rv_A, rv_B)[0].as_matrix()
 
     Pg = _modified_rodrigues(rv_A)
     Pc = _modified_rodrigues(rv_B) @ R0.T  # B's axes in the pre-rotated camera frame
-    p_prime = np.linalg.lstsq(_skew(Pg + Pc).reshape(-1, 3), (Pc - Pg).reshape(-1), rcond=None)[0]
+    p_prime = np.linalg.lstsq(skew(Pg + Pc).reshape(-1, 3), (Pc - Pg).reshape(-1), rcond=None)[0]
     Pcg = 2.0 * p_prime / np.sqrt(1.0 + p_prime @ p_prime)
     n2 = Pcg @ Pcg
-    R_small = (1.0 - n2 / 2.0) * np.eye(3) + 0.5 * (np.outer(Pcg, Pcg) + np.sqrt(max(4.0 - n2, 0.0)) * _skew(Pcg))
-    R_X = Rotation.from_matrix(R_small @ R0).as_matrix()  # re-orthonormalise
+    R_small = (1.0 - n2 / 2.0) * np.eye(3) + 0.5 * (np.outer(Pcg, Pcg) + np.sqrt(max(4.0 - n2, 0.0)) * skew(Pcg))
+    R_X = R_from_rotvec(rotvec_from_R(R_small @ R0))  # re-orthonormalise
 
     lhs = (R_A - np.eye(3)).reshape(-1, 3)
     rhs = (t_B @ R_X.T - t_A).reshape(-1)
@@ -371,7 +363,7 @@ def base_field_from_flange_camera(
     X = np.asarray(T_flange_camera, dtype=np.float64)
     R_Z_j = P[:, :3, :3] @ X[:3, :3] @ np.transpose(C[:, :3, :3], (0, 2, 1))
     t_Z_j = np.einsum("mij,j->mi", P[:, :3, :3], X[:3, 3]) + P[:, :3, 3] - np.einsum("mij,mj->mi", R_Z_j, C[:, :3, 3])
-    return make_T(Rotation.from_matrix(R_Z_j).mean().as_matrix(), t_Z_j.mean(axis=0))
+    return make_T(R_mean(R_Z_j), t_Z_j.mean(axis=0))
 
 
 def robot_world_closed_form(T_base_flange: ArrayLike, T_field_camera: ArrayLike) -> tuple[Array, Array]:
@@ -403,7 +395,7 @@ def _residual_covariance(X: Array, sigma_robot: tuple[float, float], sigma_camer
     R, t = X[:3, :3], X[:3, 3]
     Ad = np.zeros((6, 6))
     Ad[:3, :3] = R.T
-    Ad[3:, :3] = -R.T @ _skew(t)
+    Ad[3:, :3] = -R.T @ skew(t)
     Ad[3:, 3:] = R.T
     S_robot = np.diag([sigma_robot[1] ** 2] * 3 + [sigma_robot[0] ** 2] * 3)
     S_camera = np.diag([sigma_camera[1] ** 2] * 3 + [sigma_camera[0] ** 2] * 3)
@@ -412,8 +404,8 @@ def _residual_covariance(X: Array, sigma_robot: tuple[float, float], sigma_camer
 
 def _update(X0: Array, Z0: Array, x: Array) -> tuple[Array, Array]:
     """Apply increments x (12,) = [X rot, X pos, Z rot, Z pos]; rotations act on the left."""
-    X = make_T(Rotation.from_rotvec(x[0:3]).as_matrix() @ X0[:3, :3], X0[:3, 3] + x[3:6])
-    Z = make_T(Rotation.from_rotvec(x[6:9]).as_matrix() @ Z0[:3, :3], Z0[:3, 3] + x[9:12])
+    X = make_T(R_from_rotvec(x[0:3]) @ X0[:3, :3], X0[:3, 3] + x[3:6])
+    Z = make_T(R_from_rotvec(x[6:9]) @ Z0[:3, :3], Z0[:3, 3] + x[9:12])
     return X, Z
 
 
@@ -431,35 +423,20 @@ def _sample_residuals(P: Array, C: Array, X: Array, Z: Array, jacobian: bool = F
     R_PX = P[:, :3, :3] @ X[:3, :3]
     t_PX = np.einsum("mij,j->mi", P[:, :3, :3], X[:3, 3]) + P[:, :3, 3]
     WT = np.transpose(W, (0, 2, 1))
-    phi = Rotation.from_matrix(WT @ R_PX).as_rotvec()
+    phi = rotvec_from_R(WT @ R_PX)
     t_E = np.einsum("mij,mj->mi", WT, t_PX - t_ZC)
     r = np.concatenate([phi, t_E], axis=1)
     if not jacobian:
         return r
     WT_RP = WT @ P[:, :3, :3]
-    Jl_inv = _so3_jacobian(phi, inverse=True)
+    Jl_inv = left_jacobian_inv(phi)
     J = np.zeros((len(P), 6, 12))
     J[:, :3, 0:3] = Jl_inv @ WT_RP
     J[:, :3, 6:9] = -Jl_inv @ WT
     J[:, 3:, 3:6] = WT_RP
-    J[:, 3:, 6:9] = WT @ _skew(t_PX - Z[:3, 3])
+    J[:, 3:, 6:9] = WT @ skew(t_PX - Z[:3, 3])
     J[:, 3:, 9:12] = -WT
     return r, J
-
-
-def _so3_jacobian(phi: Array, inverse: bool) -> Array:
-    """Left Jacobian of SO(3) (or its inverse) at rotation vectors ``phi`` (..., 3)."""
-    theta = np.linalg.norm(phi, axis=-1)[..., None, None]
-    S = _skew(phi)
-    small = theta < 1e-4
-    th = np.where(small, 1.0, theta)
-    if inverse:
-        a = -0.5 * np.ones_like(th)
-        b = np.where(small, 1.0 / 12.0, 1.0 / th**2 - (1.0 + np.cos(th)) / (2.0 * th * np.sin(th)))
-    else:
-        a = np.where(small, 0.5, (1.0 - np.cos(th)) / th**2)
-        b = np.where(small, 1.0 / 6.0, (th - np.sin(th)) / th**3)
-    return np.eye(3) + a * S + b * (S @ S)
 
 
 def calibrate_handeye(
@@ -532,8 +509,8 @@ def calibrate_handeye(
         X, Z = _update(X0, Z0, x)
         _, J = _sample_residuals(P, C, X, Z, jacobian=True)
         # x composes as exp(x_rot) @ R0, so a step in x is a left perturbation through Jl(x_rot).
-        J[:, :, 0:3] = J[:, :, 0:3] @ _so3_jacobian(x[0:3], inverse=False)
-        J[:, :, 6:9] = J[:, :, 6:9] @ _so3_jacobian(x[6:9], inverse=False)
+        J[:, :, 0:3] = J[:, :, 0:3] @ left_jacobian(x[0:3])
+        J[:, :, 6:9] = J[:, :, 6:9] @ left_jacobian(x[6:9])
         return (whiten @ J).reshape(-1, 12)
 
     sol = least_squares(

@@ -26,10 +26,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from service.core.geometry.camera_model import BrownFraser
-from service.core.geometry.frames import check_T, inv_T, make_T
+from service.core.geometry.frames import check_T, inv_T
+from service.core.geometry.so3 import T_from_rotvec
 from service.core.results import Reason, SolveError
 
 Array = NDArray[np.float64]
@@ -62,10 +62,6 @@ class ImageHandEyeResult:
     converged: bool
 
 
-def _exp(v: Array) -> Array:
-    return make_T(Rotation.from_rotvec(v[:3]).as_matrix(), v[3:])
-
-
 def refine_handeye_on_images(
     camera: BrownFraser,
     samples: Sequence[ImageSample],
@@ -92,10 +88,12 @@ def refine_handeye_on_images(
     n_par = 12 + 6 * M
 
     def poses(x: Array) -> tuple[Array, Array, list[Array]]:
-        X = X0 @ _exp(x[0:6])
-        Z = _exp(x[6:12]) @ Z0
+        v = x.reshape(M + 2, 6)  # X's, Z's and each d_i's [rotation vector rad, translation mm]
+        T_v = T_from_rotvec(v[:, :3], v[:, 3:])
+        X = X0 @ T_v[0]
+        Z = T_v[1] @ Z0
         Z_inv = inv_T(Z)
-        T_cf = [inv_T(Z_inv @ P[i] @ _exp(x[12 + 6 * i : 18 + 6 * i]) @ X) for i in range(M)]
+        T_cf = [inv_T(Z_inv @ P[i] @ T_v[2 + i] @ X) for i in range(M)]
         return X, Z, T_cf
 
     def residuals(x: Array) -> Array:

@@ -17,10 +17,10 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from service.core.geometry.camera_model import BrownFraser
 from service.core.geometry.frames import check_T, inv_T, make_T
+from service.core.geometry.so3 import R_from_rotvec
 from service.core.results import Reason, SolveError
 from service.core.targets.field import Field
 from service.core.targets.identify import project_field
@@ -74,10 +74,10 @@ def propose_views(
         roll = np.radians(max_roll_deg) * np.sin(2.399963 * k)  # spread over ±max_roll, alternating
         distance = d0 * (1.0 + distance_spread * np.cos(1.7 * k + 0.5))
         k += 1
-        tilt_axis = Rotation.from_rotvec(azimuth * axis_now).apply(perp)
-        axis = Rotation.from_rotvec(tilt * tilt_axis).apply(axis_now)
+        tilt_axis = R_from_rotvec(azimuth * axis_now) @ perp
+        axis = R_from_rotvec(tilt * tilt_axis) @ axis_now
         eye = centre + distance * axis
-        R = _look_at(eye, centre, up_now) @ Rotation.from_rotvec([0.0, 0.0, roll]).as_matrix()
+        R = _look_at(eye, centre, up_now) @ R_from_rotvec([0.0, 0.0, roll])
         T = make_T(R, eye)
         if len(project_field(camera, field, T, margin_px=10.0)[0]) >= min_targets:
             out.append(T)

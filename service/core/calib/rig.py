@@ -10,13 +10,17 @@ asked, the cameras' interior orientations and the field's targets.
 
 By default the field is taken as calibrated (its targets fixed: they give the
 frame and the scale of the baselines); ``field_fixed=False`` adjusts the targets
-too, with inner constraints on the nominal field (scale from it or from scale
-bars), as :func:`service.core.calib.bundle.calibrate_camera` does.
+too, with the datum of :func:`service.core.calib.bundle.calibrate_camera` (inner
+constraints on the nominal field, its scale or that of scale bars, or control points).
 
-Start values: every image is resected on its own; each relative orientation is the
-mean over the epochs in which camera 0 and camera k were both resected
-(rotations averaged by ``scipy.spatial.transform.Rotation.mean``). Adjustment and
-gross-error rejection: :func:`service.core.calib.bundle_solve.solve_network`.
+The network is the bundle's: its points, observations, datum and scale bars and the
+checks of all of them come from :mod:`service.core.calib.bundle_network` (a fixed field
+is the datum whose control points are all the field's targets), the parameter blocks,
+adjustment and gross-error rejection from :mod:`service.core.calib.bundle_solve`. What is
+the rig's own: every image is resected on its own for the start values; each relative
+orientation starts as the mean over the epochs in which camera 0 and camera k were both
+resected (rotations averaged by ``scipy.spatial.transform.Rotation.mean``); and the
+jackknife below.
 
 Uncertainty. The formal covariance ``sigma0^2 Q`` treats every image coordinate as an
 independent error of the detector's size. A rig's epochs also carry errors that are
@@ -51,13 +55,23 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
-from service.core.calib.bundle import Datum
+from service.core.calib.bundle_network import (
+    Datum,
+    ImagePoints,
+    check_free,
+    collect,
+    datum_rows,
+    interior_sigmas,
+    left_out_warnings,
+    network_field,
+    point_sigmas,
+)
 from service.core.calib.bundle_solve import (
     NetworkInput,
     NetworkSolution,
     Progress,
+    T_field_view,
     T_from_params,
     Views,
     orient_views,
@@ -66,8 +80,9 @@ from service.core.calib.bundle_solve import (
     resect_view,
     solve_network,
 )
-from service.core.geometry.camera_model import PARAMETER_NAMES, BrownFraser
+from service.core.geometry.camera_model import BrownFraser
 from service.core.geometry.frames import check_T, inv_T, make_T
+from service.core.geometry.so3 import R_mean, rotvec_from_R
 from service.core.pose.intersection import Rig
 from service.core.results import Reason, SolveError
 from service.core.targets.field import Field
@@ -214,9 +229,13 @@ def _start_offsets(T_view: dict[tuple[int, int], Array], n_cam: int) -> list[Arr
             raise SolveError(
                 Reason.too_few_targets, f"Camera {k} never sees enough known targets at the same time as camera 0."
             )
-        R = Rotation.from_matrix(np.array([T[:3, :3] for T in rel])).mean().as_matrix()
-        out.append(make_T(R, np.mean([T[:3, 3] for T in rel], axis=0)))
+        out.append(make_T(R_mean(np.array([T[:3, :3] for T in rel])), np.mean([T[:3, 3] for T in rel], axis=0)))
     return out
+
+
+def _image_points(im: RigImage) -> ImagePoints:
+    """The bundle's form of a rig image, named for messages even without a name of its own."""
+    return ImagePoints(im.name or f"camera {im.camera} at epoch {im.epoch!r}", im.ids, im.uv)
 
 
 def calibrate_rig(
@@ -246,7 +265,11 @@ def calibrate_rig(
     free_interior : sequence of str
         Interior parameters to refine for every camera (default none: the cameras are calibrated).
     field_fixed : bool
-        Keep the field's targets fixed (default) or adjust them (inner constraints, ``datum``).
+        Keep the field's targets fixed (default: they are the control points) or adjust them too.
+    datum : Datum, optional
+        With ``field_fixed=False``, the datum as for :func:`service.core.calib.bundle.calibrate_camera`
+        (default: inner constraints on the nominal field). Its scale bars are checked and used either way
+        (between two fixed targets a bar adds nothing); control points need ``field_fixed=False``.
     T_master_camera_init : sequence of (4, 4), optional
         Start values of the relative orientations (default: from per-image resections).
     sigma_px, reject_outliers, progress
@@ -259,39 +282,38 @@ def calibrate_rig(
     ------
     SolveError
         ``too_few_targets`` (a camera never oriented together with camera 0),
-        ``degenerate_geometry`` (singular normal equations), ``bad_input``.
+        ``degenerate_geometry`` (singular normal equations), ``bad_input`` (an image naming a camera
+        the rig lacks, a target twice or non-finite pixels; a scale bar on a target no image saw, or
+        without a positive distance and sigma; a datum that does not fix the frame).
+    ValueError
+        Fewer than 2 cameras, unknown interior parameters, control points with ``field_fixed``.
     """
     K = len(cameras)
     if K < 2:
         raise ValueError(f"a rig needs at least 2 cameras, got {K}")
-    free_t = tuple(n for n in PARAMETER_NAMES if n in set(free_interior))
-    if set(free_interior) - set(free_t):
-        raise ValueError(f"unknown camera parameters {sorted(set(free_interior) - set(free_t))}")
+    free_t = check_free(free_interior)
+    if field_fixed and datum is not None and datum.control:
+        raise ValueError("control points are for field_fixed=False: a fixed field's targets are all control points")
     for im in images:
         if not 0 <= im.camera < K:
             raise SolveError(
                 Reason.bad_input,
                 f"Image {im.name or im.epoch!r} names camera {im.camera}, but the rig has {K} cameras.",
             )
+    net = collect(field, [_image_points(im) for im in images])
     epochs = list(dict.fromkeys(im.epoch for im in images))
-    observed = {t for im in images for t in im.ids}
-    ids = [t for t in field.ids if t in observed] + sorted(observed - set(field.index))
-    index = {t: i for i, t in enumerate(ids)}
-    nominal = np.array([field.xyz[field.index[t]] if t in field.index else [np.nan] * 3 for t in ids])
-    view_epoch = np.array([epochs.index(im.epoch) for im in images])
-    view_cam = np.array([im.camera for im in images])
+    view_epoch = np.array([epochs.index(im.epoch) for im in images], dtype=np.int64)
+    view_cam = np.array([im.camera for im in images], dtype=np.int64)
     say = progress or (lambda _s: None)
 
     # -- start values: every image resected on its own
     say(f"start values: resecting {len(images)} images")
+    in_field: NDArray[np.bool_] = np.all(np.isfinite(net.nominal), axis=1)
     T_view: dict[tuple[int, int], Array] = {}
     for j, im in enumerate(images):
-        known = [k for k, t in enumerate(im.ids) if t in field.index]
-        T = resect_view(
-            cameras[im.camera],
-            field.xyz[field.indices_of([im.ids[k] for k in known])],
-            np.asarray(im.uv, dtype=np.float64)[known],
-        )
+        m = np.flatnonzero(net.image == j)
+        m = m[in_field[net.point[m]]]
+        T = resect_view(cameras[im.camera], net.nominal[net.point[m]], net.uv[m])
         if T is not None:
             T_view[(int(view_epoch[j]), im.camera)] = T
     if T_master_camera_init is not None:
@@ -319,60 +341,44 @@ def calibrate_rig(
     stations_a = np.array(stations)
     offsets = np.array([params_from_T(T) for T in offsets_T]).reshape(-1, 6)
 
-    # -- observations and new points (intersected from the start poses)
-    view_idx, point, uv = [], [], []
-    for j, im in enumerate(images):
-        if e_map[view_epoch[j]] < 0:
-            continue
-        view_idx += [j] * len(im.ids)
-        point += [index[t] for t in im.ids]
-        uv.append(np.asarray(im.uv, dtype=np.float64).reshape(-1, 2))
-    view_idx_a, point_a, uv_a = np.array(view_idx), np.array(point), np.concatenate(uv)
-    T_start: list[Array | None] = []
-    for j in range(len(images)):
-        e = e_map[view_epoch[j]]
-        T_start.append(None if e < 0 else inv_T(_camera_from_field(stations_a[e], offsets, images[j].camera)))
-    _, p0 = orient_views(list(cameras), view_cam, Views(view_idx_a, point_a, uv_a, len(images)), nominal, T_start)
-    known = np.all(np.isfinite(p0), axis=1)
-    for i in np.flatnonzero(~known).tolist():
-        warnings.append(f"target {ids[i]!r} is seen in fewer than two oriented images and is left out")
-    keep = known[point_a]
-    station = e_map[view_epoch[view_idx_a[keep]]]
-    camera = view_cam[view_idx_a[keep]]
-    point_a, uv_a = point_a[keep], uv_a[keep]
+    # -- observations of the oriented epochs and new points (intersected from the start poses)
+    view_station = e_map[view_epoch]
+    obs = view_station[net.image] >= 0
+    views = Views(net.image[obs], net.point[obs], net.uv[obs], len(images))
+    T_start: list[Array | None] = [
+        None if view_station[j] < 0 else T_field_view(stations_a, offsets, int(view_station[j]), int(view_cam[j]))
+        for j in range(len(images))
+    ]
+    _, p0 = orient_views(list(cameras), view_cam, views, net.nominal, T_start)
+    warnings += left_out_warnings(net, p0)
+    keep = np.all(np.isfinite(p0), axis=1)[views.point]
+    station = view_station[views.view[keep]]
+    camera = view_cam[views.view[keep]]
 
-    in_field = np.isfinite(nominal).all(axis=1) & known
-    point_free = np.ones(len(ids), bool)
-    control: dict[int, tuple[Array, float]] = {}
-    inner = None
-    bars = []
+    # -- the datum, as the bundle's: a fixed field is a datum of control points, all its targets
+    datum = datum or Datum()
     if field_fixed:
-        point_free[in_field] = False
-        p0[in_field] = nominal[in_field]
-    else:
-        rows = np.flatnonzero(in_field)
-        inner = (rows, nominal[rows], 6 if datum is not None and datum.scale_bars else 7)
-        for b in (datum or Datum()).scale_bars:
-            bars.append((index[b.id_a], index[b.id_b], float(b.distance_mm), float(b.sigma_mm)))
-    net = NetworkInput(
+        datum = Datum(control=tuple(t for t in net.ids if t in field.index), scale_bars=datum.scale_bars)
+    rows = datum_rows(datum, field, net, p0)
+    net_in = NetworkInput(
         cameras=tuple(cameras),
         free_interior=tuple(free_t for _ in range(K)),
         station=station,
         camera=camera,
-        point=point_a,
-        uv=uv_a,
+        point=views.point[keep],
+        uv=views.uv[keep],
         stations=stations_a,
         offsets=offsets,
         offsets_free=True,
-        points=p0,
-        point_free=point_free,
-        control=control,
-        bars=tuple(bars),
-        inner=inner,
+        points=rows.points,
+        point_free=rows.point_free,
+        control=rows.control,
+        bars=rows.bars,
+        inner=rows.inner,
         sigma_px=float(sigma_px),
     )
-    say(f"adjusting {len(keep_epoch)} epochs of {K} cameras, {len(uv_a)} observations")
-    sol = solve_network(net, reject_outliers=reject_outliers, progress=progress)
+    say(f"adjusting {len(keep_epoch)} epochs of {K} cameras, {len(net_in.uv)} observations")
+    sol = solve_network(net_in, reject_outliers=reject_outliers, progress=progress)
 
     model, s0 = sol.model, sol.sigma0
     T_master = [np.eye(4)] + [inv_T(T_from_params(v)) for v in sol.offsets]
@@ -388,7 +394,7 @@ def calibrate_rig(
         )
     elif jackknife:
         say(f"leave-one-epoch-out: {len(keep_epoch)} re-adjustments")
-        jack = _jackknife_sigmas(net, sol)
+        jack = _jackknife_sigmas(net_in, sol)
         if not np.all(np.isfinite(jack)):
             warnings.append(
                 "a re-adjustment without one epoch failed (a camera seen in that epoch only?): "
@@ -405,35 +411,12 @@ def calibrate_rig(
                     f"the image residuals explain (synchronisation, rig flex, unmodelled distortion or "
                     f"field error?): its sigma is the leave-one-epoch-out one"
                 )
-    sig_int = []
-    for k in range(K):
-        sd = {n: 0.0 for n in PARAMETER_NAMES}
-        cols = model.int_cols[k]
-        sd.update({n: float(v) for n, v in zip(free_t, np.sqrt(np.diag(sol.Q)[cols]) * s0, strict=True)})
-        sig_int.append(sd)
-    cams = tuple(
-        BrownFraser(
-            **{
-                **{a: getattr(c, a) for a in ("width", "height", "pixel_size_mm")},
-                **dict(zip(PARAMETER_NAMES, c.params().tolist(), strict=True)),
-                "sigma": sd,
-            }
-        )
-        for c, sd in zip(sol.cameras, sig_int, strict=True)
-    )
+    sig_int = tuple(interior_sigmas(sol, k, free_t) for k in range(K))
+    cams = tuple(replace(c, sigma=sd) for c, sd in zip(sol.cameras, sig_int, strict=True))
     inl, res = sol.inliers, sol.residuals_px
     rms = np.array(
         [np.sqrt(np.mean(res[(camera == k) & inl] ** 2)) if np.any((camera == k) & inl) else np.nan for k in range(K)]
     )
-    n_obs = np.bincount(camera, minlength=K)
-    n_rej = np.bincount(camera[~inl], minlength=K)
-    sig_xyz = np.zeros((len(ids), 3))
-    for i in range(len(ids)):
-        c = model.point_col[i]
-        if c >= 0:
-            sig_xyz[i] = np.sqrt(np.clip(np.diag(sol.Q[c : c + 3, c : c + 3]), 0.0, None)) * s0
-    codes = [int(field.codes[field.index[t]]) if t in field.index else -1 for t in ids]
-    diam = [float(field.diameters_mm[field.index[t]]) if t in field.index else np.nan for t in ids]
     return RigCalibration(
         rig=Rig(cams, np.array(T_master)),
         sigma_rotation_deg=sigma[:, :3],
@@ -443,25 +426,19 @@ def calibrate_rig(
         sigma_rotation_jackknife_deg=jack[:, :3],
         sigma_position_jackknife_mm=jack[:, 3:],
         sigma_source=sigma_source,
-        sigma_interior=tuple(sig_int),
+        sigma_interior=sig_int,
         sigma0_px=s0 * sigma_px,
         redundancy=sol.redundancy,
         rms_px=rms,
-        n_observations=n_obs,
-        n_rejected=n_rej,
+        n_observations=np.bincount(camera, minlength=K),
+        n_rejected=np.bincount(camera[~inl], minlength=K),
         epochs=tuple(epochs[e] for e in keep_epoch),
         T_field_rig=np.array([inv_T(T_from_params(v)) for v in sol.stations]),
-        field=Field(field.name, tuple(ids), sol.points, np.array(codes), np.array(diam)),
-        sigma_xyz_mm=sig_xyz,
+        field=network_field(field.name, net, sol.points),
+        sigma_xyz_mm=point_sigmas(sol, net_in.point_free),
         warnings=tuple(warnings),
         extra={"free_interior": list(free_t), "field_fixed": field_fixed},
     )
-
-
-def _camera_from_field(station: Array, offsets: Array, k: int) -> Array:
-    """``T_camerak_field`` of a station ``[w, t]`` of ``T_rig_field``."""
-    T_rig_field = T_from_params(station)
-    return T_rig_field if k == 0 else T_from_params(offsets[k - 1]) @ T_rig_field
 
 
 def _master_from_offset(offset: Array) -> tuple[Array, Array]:
@@ -501,7 +478,7 @@ def _jackknife_sigmas(net: NetworkInput, sol: NetworkSolution) -> Array:
             return np.full((K, 6), np.nan)
         for k in range(1, K):
             R, t = _master_from_offset(rep.offsets[k - 1])
-            theta[s, k, :3] = np.degrees(Rotation.from_matrix(R @ full[k - 1][0].T).as_rotvec())
+            theta[s, k, :3] = np.degrees(rotvec_from_R(R @ full[k - 1][0].T))  # left: R = exp(d) R_full
             theta[s, k, 3:] = t - full[k - 1][1]
     dev = theta - theta.mean(axis=0)
     return np.sqrt((S - 1) / S * np.sum(dev * dev, axis=0))

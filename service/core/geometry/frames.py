@@ -2,7 +2,9 @@
 
 ``p_a = T_a_b @ p_b`` for homogeneous points, so chains read left to right:
 ``T_base_camera = T_base_flange @ T_flange_camera``. Lengths are mm, angles rad
-unless a name says ``_deg``. Rotations go through ``scipy.spatial.transform.Rotation``.
+unless a name says ``_deg``. Rotation vectors and the angle between two rotations come from
+:mod:`service.core.geometry.so3` (re-exported here: :func:`T_from_rotvec`, :func:`rotvec_from_T`);
+the Euler conventions below go through ``scipy.spatial.transform.Rotation``.
 
 Orientation conventions offered for people (DESIGN section 1):
 
@@ -18,6 +20,10 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
+
+from service.core.geometry import so3
+from service.core.geometry.so3 import T_from_rotvec as T_from_rotvec
+from service.core.geometry.so3 import rotvec_from_T as rotvec_from_T
 
 Array = NDArray[np.float64]
 
@@ -64,7 +70,7 @@ def make_T(R: ArrayLike, t: ArrayLike) -> Array:
 def inv_T(T_a_b: ArrayLike) -> Array:
     """``T_b_a`` from ``T_a_b`` using the rigid-body structure (no general inverse).
 
-    >>> T = make_T(Rotation.from_rotvec([0, 0, np.pi / 2]).as_matrix(), [1, 0, 0])
+    >>> T = T_from_rotvec([0, 0, np.pi / 2], [1, 0, 0])
     >>> np.allclose(inv_T(T) @ T, np.eye(4))
     True
     """
@@ -83,16 +89,6 @@ def apply_T(T_a_b: ArrayLike, p_b: ArrayLike) -> Array:
     T_a_b = np.asarray(T_a_b, dtype=np.float64)
     p_b = np.asarray(p_b, dtype=np.float64)
     return p_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
-
-
-def T_from_rotvec(rotvec: ArrayLike, t: ArrayLike) -> Array:
-    """Transform from a rotation vector (3,) rad and a translation (3,) mm."""
-    return make_T(Rotation.from_rotvec(np.asarray(rotvec, dtype=np.float64)).as_matrix(), t)
-
-
-def rotvec_from_T(T: ArrayLike) -> Array:
-    """Rotation vector (3,) rad of the rotation block of ``T``."""
-    return Rotation.from_matrix(np.asarray(T, dtype=np.float64)[:3, :3]).as_rotvec()
 
 
 def T_from_ur_pose(pose_m_rotvec: ArrayLike) -> Array:
@@ -142,10 +138,10 @@ def R_from_opk(opk: ArrayLike) -> Array:
 def rotation_angle_deg(R: ArrayLike) -> float:
     """Angle (deg) of the rotation ``R``; used for pose differences.
 
-    >>> round(rotation_angle_deg(Rotation.from_rotvec([0, 0.5, 0]).as_matrix()), 6)
+    >>> round(rotation_angle_deg(so3.R_from_rotvec([0, 0.5, 0])), 6)
     28.64789
     """
-    return float(np.degrees(np.linalg.norm(Rotation.from_matrix(np.asarray(R)).as_rotvec())))
+    return float(np.degrees(so3.angle(R)))
 
 
 def pose_difference(T_a_b1: ArrayLike, T_a_b2: ArrayLike) -> tuple[float, float]:
@@ -153,15 +149,14 @@ def pose_difference(T_a_b1: ArrayLike, T_a_b2: ArrayLike) -> tuple[float, float]
     T1 = np.asarray(T_a_b1, dtype=np.float64)
     T2 = np.asarray(T_a_b2, dtype=np.float64)
     dt = float(np.linalg.norm(T1[:3, 3] - T2[:3, 3]))
-    return dt, rotation_angle_deg(T1[:3, :3].T @ T2[:3, :3])
+    return dt, float(np.degrees(so3.angle_between(T1[:3, :3], T2[:3, :3])))
 
 
 def interpolate_T(T_a_b0: ArrayLike, T_a_b1: ArrayLike, s: float) -> Array:
     """Pose at fraction ``s`` between two poses: linear in position, slerp in rotation."""
     T0 = np.asarray(T_a_b0, dtype=np.float64)
     T1 = np.asarray(T_a_b1, dtype=np.float64)
-    dR = Rotation.from_matrix(T0[:3, :3].T @ T1[:3, :3]).as_rotvec()
-    R = T0[:3, :3] @ Rotation.from_rotvec(s * dR).as_matrix()
+    R = T0[:3, :3] @ so3.R_from_rotvec(s * so3.rotvec_between(T0[:3, :3], T1[:3, :3]))
     return make_T(R, (1.0 - s) * T0[:3, 3] + s * T1[:3, 3])
 
 

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
+from service.core.geometry.so3 import R_from_rotvec, skew
 from service.core.results import Reason, SolveError
 
 Array = NDArray[np.float64]
@@ -31,20 +31,6 @@ Array = NDArray[np.float64]
 # Relative spread below which a point set counts as collinear (second singular
 # value over the first); a roll about the line is then undetermined.
 COLLINEAR_RATIO = 1e-6
-
-
-def skew(v: ArrayLike) -> Array:
-    """Cross-product matrices (..., 3, 3) of vectors (..., 3): ``skew(a) @ b == cross(a, b)``.
-
-    >>> skew([1.0, 2.0, 3.0]) @ [4.0, 5.0, 6.0]
-    array([-3.,  6., -3.])
-    """
-    v = np.asarray(v, dtype=np.float64)
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
 
 
 @dataclass(frozen=True)
@@ -268,7 +254,7 @@ def rigid_transform_with_covariance(
         r, J, W = _rigid_linearise(R, t, au, bu, info)
         JtW = J.swapaxes(1, 2) @ W
         step = -np.linalg.solve((JtW @ J).sum(axis=0), (JtW @ r[..., None]).sum(axis=0)[:, 0])
-        R = Rotation.from_rotvec(step[:3]).as_matrix() @ R
+        R = R_from_rotvec(step[:3]) @ R
         t = t + step[3:]
         if np.max(np.abs(step[:3])) < 1e-13 and np.max(np.abs(step[3:])) < 1e-10:
             converged = True

@@ -49,7 +49,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from service.core.geometry.camera_model import BrownFraser
 from service.core.geometry.frames import check_T, inv_T
-from service.core.geometry.similarity import rigid_transform_with_covariance, skew
+from service.core.geometry.similarity import rigid_transform_with_covariance
+from service.core.geometry.so3 import skew
 from service.core.results import Reason, SolveError
 
 Array = NDArray[np.float64]

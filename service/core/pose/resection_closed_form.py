@@ -21,11 +21,11 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from service.core._kernels.resection_kernel import centre_planar_kernel, rotation_from_centre_kernel, spread_kernel
 from service.core.geometry.camera_model import BrownFraser
 from service.core.geometry.frames import make_T
+from service.core.geometry.so3 import R_from_rotvec
 from service.core.results import Reason, SolveError
 
 Array = NDArray[np.float64]
@@ -191,7 +191,7 @@ def _pose_p3p(p: Array, n_img: Array) -> Array:
         X, x = np.ascontiguousarray(p[list(sel)]), np.ascontiguousarray(n_img[list(sel)])
         _, rvecs, tvecs = cv2.solveP3P(X, x, np.eye(3), None, flags=cv2.SOLVEPNP_P3P)
         for rvec, tvec in zip(rvecs, tvecs, strict=True):
-            R_field_camera = cv2.Rodrigues(rvec)[0].T
+            R_field_camera = R_from_rotvec(np.ravel(rvec)).T
             T = make_T(R_field_camera, -R_field_camera @ tvec.ravel())
             err = _image_error(T, p, n_img)
             if err < best_err:
@@ -312,7 +312,7 @@ def _pose_p3p_consensus(p: Array, n_img: Array, tol: float) -> Array | None:
             tvecs.extend(t)
         if not rvecs:
             continue
-        R_camera_field = Rotation.from_rotvec(np.reshape(rvecs, (-1, 3))).as_matrix()  # (K, 3, 3)
+        R_camera_field = R_from_rotvec(np.reshape(rvecs, (-1, 3)))  # (K, 3, 3)
         t_camera_field = np.reshape(tvecs, (-1, 3))
         pc = np.einsum("kij,nj->kni", R_camera_field, p) + t_camera_field[:, None]  # (K, N, 3)
         z = pc[..., 2]

@@ -40,10 +40,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 from scipy.stats import qmc
 
-from service.core.geometry.frames import make_T
+from service.core.geometry.so3 import R_from_rotvec, T_from_rotvec, rotvec_between, rotvec_from_R
 from service.core.results import Reason, SolveError
 from service.core.robot.kinematics import KinematicModel
 
@@ -90,14 +89,8 @@ class _Layout:
         v = dict(zip(self.names, delta, strict=True))
         nom = self.nominal
         rows = {k: np.array([v.get(f"{k}{i}", 0.0) for i in range(1, 7)]) for k in _DH_KINDS}
-        T_b = make_T(
-            Rotation.from_rotvec([v.get(n, 0.0) for n in BASE_NAMES[3:]]).as_matrix(),
-            [v.get(n, 0.0) for n in BASE_NAMES[:3]],
-        )
-        T_t = make_T(
-            Rotation.from_rotvec([v.get(n, 0.0) for n in TOOL_NAMES[3:]]).as_matrix(),
-            [v.get(n, 0.0) for n in TOOL_NAMES[:3]],
-        )
+        T_b = T_from_rotvec([v.get(n, 0.0) for n in BASE_NAMES[3:]], [v.get(n, 0.0) for n in BASE_NAMES[:3]])
+        T_t = T_from_rotvec([v.get(n, 0.0) for n in TOOL_NAMES[3:]], [v.get(n, 0.0) for n in TOOL_NAMES[:3]])
         return replace(
             nom,
             a_mm=nom.a_mm + rows["a"],
@@ -114,7 +107,7 @@ class _Layout:
         p = T[:, :3, :3] @ self.p_flange_point_mm + T[:, :3, 3]
         if not self.with_orientation:
             return p
-        return np.hstack([p, Rotation.from_matrix(T[:, :3, :3]).as_rotvec()])
+        return np.hstack([p, rotvec_from_R(T[:, :3, :3])])
 
 
 def _residual(layout: _Layout, delta: Array, q: Array, measured: Array, rot_weight_mm: float) -> Array:
@@ -123,8 +116,8 @@ def _residual(layout: _Layout, delta: Array, q: Array, measured: Array, rot_weig
     r_pos = pred[:, :3] - measured[:, :3]
     if not layout.with_orientation:
         return r_pos.ravel()
-    R_err = Rotation.from_rotvec(measured[:, 3:]).inv() * Rotation.from_rotvec(pred[:, 3:])
-    return np.hstack([r_pos, rot_weight_mm * R_err.as_rotvec()]).ravel()
+    r_rot = rotvec_between(R_from_rotvec(measured[:, 3:]), R_from_rotvec(pred[:, 3:]))
+    return np.hstack([r_pos, rot_weight_mm * r_rot]).ravel()
 
 
 def _jacobian(
@@ -337,7 +330,7 @@ def identify_kinematics(
     M = q.shape[0]
     if meas.shape == (M, 4, 4):
         with_orientation = True
-        obs = np.hstack([meas[:, :3, 3], Rotation.from_matrix(meas[:, :3, :3]).as_rotvec()])
+        obs = np.hstack([meas[:, :3, 3], rotvec_from_R(meas[:, :3, :3])])
     elif meas.shape == (M, 3):
         with_orientation = False
         obs = meas

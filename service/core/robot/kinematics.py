@@ -19,9 +19,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from service.core.geometry.frames import check_T
+from service.core.geometry.so3 import rotvec_between
 from service.core.results import Reason, SolveError
 
 Array = NDArray[np.float64]
@@ -197,12 +197,12 @@ class KinematicModel:
         """
         T_t = check_T(T_base_flange, "T_base_flange")
         seed = np.asarray(q_seed, dtype=np.float64).reshape(6)
-        R_t_T = T_t[:3, :3].T
+        R_t, R_t_T = T_t[:3, :3], T_t[:3, :3].T
         p_t = T_t[:3, 3]
 
         def residual(q: Array) -> Array:
             F = self._frames(q[None])[0, 7]
-            e_rot = Rotation.from_matrix(R_t_T @ F[:3, :3]).as_rotvec()
+            e_rot = rotvec_between(R_t, F[:3, :3])
             return np.concatenate([F[:3, 3] - p_t, IK_ROT_SCALE_MM * e_rot])
 
         def jac(q: Array) -> Array:
