@@ -60,8 +60,8 @@ class Hub:
 
     def publish_threadsafe(self, result: Measurement) -> None:
         loop = self._loop
-        if loop is None or loop.is_closed():
-            return
+        if loop is None or loop.is_closed() or not self.clients:
+            return  # nobody listens: no encoding
         text = result.json  # encoded once for every client
         lite = result.json_without_targets if any(not c.targets for c in list(self.clients)) else text
         # decimation runs on the exposure instant; an outage result has none: its publication then

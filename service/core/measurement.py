@@ -185,21 +185,22 @@ class Measurement:
     # --- the wire form (DESIGN section 4), once per variant --------------------------------------
 
     def to_dict(self, targets: bool = True) -> dict[str, Any]:
-        d = dict(self._full_dict) if targets else {k: v for k, v in self._full_dict.items() if k != "targets"}
-        return d
+        """The wire form as a new dict (exactly what :attr:`json` says: finite, rounded)."""
+        parsed: dict[str, Any] = json.loads(self.json if targets else self.json_without_targets)
+        return parsed
 
     @cached_property
     def json(self) -> str:
-        """Compact JSON text of the whole result (the WebSocket message)."""
-        return json.dumps(self._full_dict, separators=(",", ":"), allow_nan=False, default=_null)
+        """Compact JSON text of the whole result: the WebSocket message, the stored row's result."""
+        return _dumps(self._wire)
 
     @cached_property
     def json_without_targets(self) -> str:
-        return json.dumps(self.to_dict(targets=False), separators=(",", ":"), allow_nan=False, default=_null)
+        return _dumps({k: v for k, v in self._wire.items() if k != "targets"})
 
     @cached_property
-    def _full_dict(self) -> dict[str, Any]:
-        d = _finite(self.result.to_dict())
+    def _wire(self) -> dict[str, Any]:
+        d = self.result.to_dict()
         if self.camera:
             d["camera"] = self.camera
         if self.seq is not None:
@@ -231,8 +232,16 @@ class Measurement:
         return d
 
 
+def _dumps(d: dict[str, Any]) -> str:
+    # strict JSON first (the common case costs one pass); NaN or infinities (a σ of an unobservable
+    # direction is infinite) have no JSON: then the walk that makes them null
+    try:
+        return json.dumps(d, separators=(",", ":"), allow_nan=False, default=_null)
+    except ValueError:
+        return json.dumps(_finite(d), separators=(",", ":"), allow_nan=False, default=_null)
+
+
 def _finite(d: dict[str, Any]) -> dict[str, Any]:
-    """NaN and infinities have no JSON: null (a σ of an unobservable direction is infinite)."""
 
     def clean(v: Any) -> Any:
         if isinstance(v, float):

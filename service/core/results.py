@@ -12,6 +12,8 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
 
+import numpy as np
+
 
 class Reason(StrEnum):
     """Why a measurement or a solve failed; the same codes in CLI, REST, WebSocket and database."""
@@ -119,24 +121,23 @@ class PoseResult:
         return [t.id for t in self.targets if not t.used]
 
     def to_dict(self) -> dict[str, Any]:
-        def r(x: float, nd: int = 6) -> float:
-            return round(float(x), nd)
-
+        # the per-frame hot path: builtin round on the floats, one small dict per target
+        T = np.round(np.asarray(self.T_field_camera, dtype=np.float64), 9).tolist()
         return {
             "ok": True,
-            "T_field_camera": [[r(v, 9) for v in row] for row in self.T_field_camera],
-            "sigma_position_mm": [r(v) for v in self.sigma_position_mm],
-            "sigma_rotation_deg": [r(v, 8) for v in self.sigma_rotation_deg],
-            "rms_px": r(self.rms_px, 5),
-            "sigma0_px": r(self.sigma0_px, 5),
+            "T_field_camera": T,
+            "sigma_position_mm": np.round(np.asarray(self.sigma_position_mm, dtype=np.float64), 6).tolist(),
+            "sigma_rotation_deg": np.round(np.asarray(self.sigma_rotation_deg, dtype=np.float64), 8).tolist(),
+            "rms_px": round(float(self.rms_px), 5),
+            "sigma0_px": round(float(self.sigma0_px), 5),
             "n_coded": self.n_coded,
             "n_uncoded": self.n_uncoded,
             "rejected": self.rejected_ids,
             "targets": [
                 {
                     "id": t.id,
-                    "uv": [r(t.uv[0], 4), r(t.uv[1], 4)],
-                    "residual_px": [r(t.residual_px[0], 4), r(t.residual_px[1], 4)],
+                    "uv": [round(float(t.uv[0]), 4), round(float(t.uv[1]), 4)],
+                    "residual_px": [round(float(t.residual_px[0]), 4), round(float(t.residual_px[1]), 4)],
                     **({} if t.used else {"rejected": True}),
                 }
                 for t in self.targets

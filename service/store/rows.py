@@ -87,19 +87,12 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"{type(o).__name__} is not JSON serialisable")
 
 
-def _json_or_repr(o: Any) -> Any:
-    try:
-        return _json_default(o)
-    except TypeError:
-        return repr(o)
-
-
-def _dumps(obj: Any, default: Callable[[Any], Any] = _json_default) -> str:
+def _dumps(obj: Any) -> str:
     """Compact strict JSON; NaN and infinities (no JSON for them) become null."""
     try:
-        return json.dumps(obj, default=default, separators=(",", ":"), allow_nan=False)
+        return json.dumps(obj, default=_json_default, separators=(",", ":"), allow_nan=False)
     except ValueError:  # rare: only then pay for the walk
-        return json.dumps(null_for_unknown(obj), default=default, separators=(",", ":"), allow_nan=False)
+        return json.dumps(null_for_unknown(obj), default=_json_default, separators=(",", ":"), allow_nan=False)
 
 
 def _real(x: Any) -> float | None:
@@ -138,9 +131,8 @@ def measurement_row(m: Measurement, triggered: bool) -> tuple[Any, ...]:
         None if dev is None else _real(dev.angle_deg),
         _real(rms_px),
         m.n_targets,
-        # converted in the writer thread: an odd value in a failure's details is kept as its repr,
-        # never a reason to lose the row
-        _dumps({**m.to_dict(), "triggered": triggered}, default=_json_or_repr),
+        # the message's own JSON (encoded once, for the WebSocket too) with the trigger flag added
+        f'{m.json[:-1]},"triggered":{"true" if triggered else "false"}}}',
     )
 
 
