@@ -8,9 +8,10 @@ it into a :class:`Failure`. Programmer errors (wrong shapes) stay exceptions.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 
@@ -94,6 +95,44 @@ class TargetObservation:
     used: bool = True
 
 
+@dataclass(frozen=True, eq=False)
+class TargetTable(Sequence[TargetObservation]):
+    """A frame's identified targets as arrays (the pipeline's form: no Python object per target).
+
+    A sequence of :class:`TargetObservation` for whoever iterates it; the encoding, the counts and
+    the rejected list read the arrays.
+    """
+
+    ids: tuple[str, ...]
+    uv_px: Any  # (N, 2) float
+    residual_px: Any  # (N, 2) float
+    coded: Any  # (N,) bool
+    used: Any  # (N,) bool
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @overload
+    def __getitem__(self, i: int) -> TargetObservation: ...
+    @overload
+    def __getitem__(self, i: slice) -> Sequence[TargetObservation]: ...
+    def __getitem__(self, i: int | slice) -> TargetObservation | Sequence[TargetObservation]:
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(len(self)))]
+        u, r = self.uv_px[i], self.residual_px[i]
+        return TargetObservation(
+            self.ids[i], (float(u[0]), float(u[1])), (float(r[0]), float(r[1])), bool(self.coded[i]), bool(self.used[i])
+        )
+
+    def to_list(self) -> list[dict[str, Any]]:
+        uv = np.round(self.uv_px, 4).tolist()
+        res = np.round(self.residual_px, 4).tolist()
+        return [
+            {"id": i, "uv": q, "residual_px": e} if u else {"id": i, "uv": q, "residual_px": e, "rejected": True}
+            for i, q, e, u in zip(self.ids, uv, res, self.used.tolist(), strict=True)
+        ]
+
+
 @dataclass(frozen=True)
 class PoseResult:
     """A measured camera pose with its precision (DESIGN section 4)."""
@@ -103,22 +142,31 @@ class PoseResult:
     sigma_rotation_deg: Any  # (3,) small rotations about the field axes
     rms_px: float
     sigma0_px: float
-    targets: tuple[TargetObservation, ...]
+    targets: Sequence[TargetObservation]  # a tuple, or the pipeline's TargetTable
     n_iter: int = 0
 
     ok: bool = True
 
     @property
     def n_coded(self) -> int:
-        return sum(1 for t in self.targets if t.coded and t.used)
+        t = self.targets
+        if isinstance(t, TargetTable):
+            return int(np.count_nonzero(t.coded & t.used))
+        return sum(1 for o in t if o.coded and o.used)
 
     @property
     def n_uncoded(self) -> int:
-        return sum(1 for t in self.targets if not t.coded and t.used)
+        t = self.targets
+        if isinstance(t, TargetTable):
+            return int(np.count_nonzero(~t.coded & t.used))
+        return sum(1 for o in t if not o.coded and o.used)
 
     @property
     def rejected_ids(self) -> list[str]:
-        return [t.id for t in self.targets if not t.used]
+        t = self.targets
+        if isinstance(t, TargetTable):
+            return [t.ids[k] for k in np.flatnonzero(~t.used)]
+        return [o.id for o in t if not o.used]
 
     def to_dict(self) -> dict[str, Any]:
         # the per-frame hot path: builtin round on the floats, one small dict per target
@@ -133,7 +181,9 @@ class PoseResult:
             "n_coded": self.n_coded,
             "n_uncoded": self.n_uncoded,
             "rejected": self.rejected_ids,
-            "targets": [
+            "targets": self.targets.to_list()
+            if isinstance(self.targets, TargetTable)
+            else [
                 {
                     "id": t.id,
                     "uv": [round(float(t.uv[0]), 4), round(float(t.uv[1]), 4)],

@@ -18,7 +18,6 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from itertools import repeat
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,7 +26,7 @@ from service.core._kernels import detect_kernel, geometry_kernels, resection_ker
 from service.core.geometry.camera_model import BrownFraser
 from service.core.pose.resection import ResectionResult, resect
 from service.core.pose.tracking import PoseSample, predict_pose
-from service.core.results import Failure, PoseResult, Reason, SolveError, TargetObservation
+from service.core.results import Failure, PoseResult, Reason, SolveError, TargetTable
 from service.core.targets.codes import FAMILIES, POSECELL12, CodeFamily
 from service.core.targets.decode import read_codes
 from service.core.targets.decode import warm_up as decode_warm_up
@@ -38,36 +37,19 @@ from service.core.targets.identify import eccentricity_px, match_coded, match_pr
 Array = NDArray[np.float64]
 
 
-def _observations(
-    ids: Sequence[str], uv: Array, residuals: Array, coded: list[bool], used: list[bool]
-) -> tuple[TargetObservation, ...]:
-    """TargetObservations of the rows of ``uv`` and ``residuals`` (N, 2) px. A frozen dataclass's
-    ``__init__`` sets each field through ``object.__setattr__``: for the ~230 targets of a frame
-    that cost a fifth of an ROI frame's budget, so the instances are made empty (by ``map``, without
-    a Python call each) and their fields written to their ``__dict__``; the (u, v) pairs come from
-    zipping the columns as Python floats."""
-    out = list(map(object.__new__, repeat(TargetObservation, len(ids))))
-    pairs = zip(uv[:, 0].tolist(), uv[:, 1].tolist(), strict=True)
-    res = zip(residuals[:, 0].tolist(), residuals[:, 1].tolist(), strict=True)
-    for t, tid, q, r, c, u in zip(out, ids, pairs, res, coded, used, strict=True):
-        d = t.__dict__
-        d["id"], d["uv"], d["residual_px"], d["coded"], d["used"] = tid, q, r, c, u
-    return tuple(out)
-
-
 def pose_result_from_resection(
     result: ResectionResult, field: Field, ids: Sequence[str], uv: Array, rows: NDArray[np.int64] | None = None
 ) -> PoseResult:
     """Attach target ids, codes and residuals to a resection result (``rows``: the ids' field rows, if known)."""
     if rows is None:
         rows = field.indices_of(list(ids))
-    # Python scalars first: indexing numpy arrays element by element costs more than the resection
-    targets = _observations(
-        ids,
+    # arrays, not an object per target: the ~230 targets of a frame are encoded from them directly
+    targets = TargetTable(
+        tuple(ids),
         np.asarray(uv, dtype=np.float64).reshape(-1, 2),
-        result.residuals_px,
-        (field.codes[rows] >= 0).tolist(),
-        result.inliers.tolist(),
+        np.asarray(result.residuals_px, dtype=np.float64),
+        field.codes[rows] >= 0,
+        np.asarray(result.inliers, dtype=bool),
     )
     return PoseResult(
         T_field_camera=result.T_field_camera,
