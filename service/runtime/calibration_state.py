@@ -100,11 +100,6 @@ class CalibrationState:
             self.sources[kind] = source
             self.generation += 1
 
-    def touch(self) -> None:
-        """Make every processor rebuild its measurer (processing options changed)."""
-        with self._lock:
-            self.generation += 1
-
     def update(self, kind: str, data: Any, note: str = "") -> int | None:
         """Validate, store (versioned, atomic) and use a new calibration; returns its version.
 
