@@ -5,15 +5,28 @@ scipy: Levenberg-Marquardt on the whitened collinearity equations, iterative dat
 snooping with re-admission, the planar closed form. Scenes are seeded plates and
 volumes with noise and gross errors; the compiled path must give the same inliers
 and the same pose, covariance and residuals to ~1e-9 (mm, px), and the same
-failures for degenerate input.
+failures for degenerate input. The kernels are also called directly against OpenCV and
+SciPy: ``resect_kernel`` against ``cv2.solvePnPRefineLM`` (no distortion, so both minimise
+the same reprojection error), ``rotation_from_centre_kernel`` against
+``Rotation.align_vectors`` (Kabsch), ``spread_kernel`` against the singular values of the
+centred points, ``centre_planar_kernel`` against the closed form above.
 """
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from service.core._kernels.geometry_kernels import whitened_ideal_kernel
+from service.core._kernels.resection_kernel import (
+    OK,
+    centre_planar_kernel,
+    resect_kernel,
+    rotation_from_centre_kernel,
+    spread_kernel,
+)
 from service.core.geometry.camera_model import BrownFraser
 from service.core.pose.resection import SNOOPING_ALPHA, SNOOPING_SIGMA_FLOOR_PX, resect
 from service.core.pose.resection_closed_form import _centre_planar, _rotation_from_centre, resect_closed_form
@@ -237,3 +250,90 @@ def test_compiled_planar_closed_form_matches_the_numpy_reference(reference_camer
         np.testing.assert_allclose(R, R_ref, rtol=0, atol=1e-12)
         T = resect_closed_form(reference_camera, p, uv)
         np.testing.assert_allclose(T[:3, 3], C_ref, rtol=0, atol=tol_mm)
+
+
+# -- the kernels called directly, against OpenCV and SciPy ------------------------------------------
+
+
+def test_compiled_adjustment_is_opencvs_refined_pnp_without_distortion(rng):
+    # no distortion and square pixels: W is 1 / pixel size for every point, so the whitened
+    # least squares and OpenCV's reprojection error in ideal coordinates have the same minimum
+    camera = BrownFraser(1300, 1030, (0.0067, 0.0067), 12.0, 0.031, -0.024)
+    K_mm = np.diag([camera.c_mm, camera.c_mm, 1.0])
+    for kind in ("plate", "volume"):
+        for n in (4, 6, 30, 230):
+            T, p, uv = (
+                plate_scene(camera, rng, n=n, view_angle_deg=70.0)
+                if kind == "plate"
+                else volume_scene(camera, rng, n=n)
+            )
+            uv = uv + rng.normal(0, SIGMA_PX, uv.shape)
+            xy, W = whitened_ideal_kernel(uv, 649.5, 514.5, 0.0067, 0.0067, 0.031, -0.024, *(0.0,) * 7)
+            T0 = T.copy()
+            T0[:3, :3] = Rotation.from_rotvec(rng.normal(0, 0.01, 3)).as_matrix() @ T[:3, :3]
+            T0[:3, 3] += rng.normal(0, 5.0, 3)
+            out = resect_kernel(T0, p, xy, W, camera.c_mm, 50, False, np.nan, 0.5, np.nan, SNOOPING_ALPHA, 1e-4)
+            status, T_k, sigma_k, sigma0 = out[0], out[1], out[7], out[8]
+            assert status == OK
+            T_cf = np.linalg.inv(T0)  # OpenCV's rvec, tvec are T_camera_field
+            rvec, tvec = cv2.Rodrigues(T_cf[:3, :3])[0], T_cf[:3, 3].copy()
+            criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-15)
+            rvec, tvec = cv2.solvePnPRefineLM(p, xy, K_mm, None, rvec, tvec, criteria=criteria)
+            R = cv2.Rodrigues(rvec)[0]
+            C = -R.T @ tvec.ravel()
+            # both at the least-squares minimum: to 1e-5 of the pose's own standard deviation (4 and 6
+            # points leave a flat valley where either stops ~1e-7 mm short), to 1e-9 mm with more
+            np.testing.assert_allclose(T_k[:3, 3], C, rtol=0, atol=1e-5 * sigma_k[3:].max() + 1e-9)
+            np.testing.assert_allclose(T_k[:3, :3], R.T, rtol=0, atol=1e-5 * np.radians(sigma_k[:3].max()) + 1e-12)
+            # sigma0 from OpenCV's own projection: sqrt(sum r^2 / (2n - 6)), px
+            r_px = (cv2.projectPoints(p, rvec, tvec, K_mm, None)[0].reshape(-1, 2) - xy) / 0.0067
+            assert sigma0 == pytest.approx(np.sqrt(np.sum(r_px**2) / (2 * n - 6)), rel=1e-9)
+            np.testing.assert_array_equal(out[3], True)  # no snooping asked for: every point in
+
+
+def test_spread_is_the_singular_values_of_the_centred_points(rng):
+    for n in (1, 2, 4, 30, 230):
+        rot = Rotation.random(random_state=rng.integers(1 << 31)).as_matrix()
+        p = rng.normal(0, [300.0, 100.0, 10.0], (n, 3)) @ rot
+        xy = rng.normal(0, [3.0, 0.5], (n, 2))
+        if n == 30:  # collinear field points, and image points on one line
+            p = np.outer(rng.normal(0, 100, n), [0.6, 0.8, 0.0]) + [10.0, 20.0, 30.0]
+            xy = np.outer(rng.normal(0, 1, n), [1.0, 2.0])
+        s, s_img = spread_kernel(p, xy)
+        ref = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
+        ref_img = np.linalg.svd(xy - xy.mean(axis=0), compute_uv=False)
+        ref, ref_img = np.pad(ref, (0, 3 - len(ref))), np.pad(ref_img, (0, 2 - len(ref_img)))
+        # eigenvalues of the scatter matrix, rooted: a vanishing spread only to sqrt(1e-16) of the
+        # largest (the square root of round-off), the others to 1e-9 relative
+        np.testing.assert_allclose(s, ref, rtol=1e-9, atol=1e-7 * ref[0])
+        np.testing.assert_allclose(s_img, ref_img, rtol=1e-9, atol=1e-7 * ref_img[0])
+
+
+def test_rotation_from_centre_is_the_kabsch_rotation_of_the_rays(reference_camera, rng):
+    for k in range(20):
+        n = [3, 4, 30, 230][k % 4]
+        _, p, uv = plate_scene(reference_camera, rng, n=n, view_angle_deg=rng.uniform(40, 90))
+        xy = reference_camera.ideal_from_pixel(uv + rng.normal(0, 1.0, uv.shape))
+        C = rng.normal(0, 50.0, 3) + [0.0, 0.0, 1000.0]  # a centre a little off: rays that disagree
+        d = (p - C) / np.linalg.norm(p - C, axis=1, keepdims=True)
+        b = np.column_stack([xy, np.full(n, reference_camera.c_mm)])
+        b /= np.linalg.norm(b, axis=1, keepdims=True)
+        R_ref = Rotation.align_vectors(d, b)[0].as_matrix()  # minimises sum |d - R b|^2
+        R = rotation_from_centre_kernel(p, xy, reference_camera.c_mm, C)
+        np.testing.assert_allclose(R, R_ref, rtol=0, atol=1e-12)  # two SVDs of one 3 x 3 matrix
+
+
+def test_planar_centre_kernel_is_the_numpy_closed_form_and_rejects_collinear_points(reference_camera, rng):
+    for n in (4, 30):
+        _, p, uv = plate_scene(reference_camera, rng, n=n, view_angle_deg=rng.uniform(55, 90))
+        xy = reference_camera.ideal_from_pixel(uv + rng.normal(0, SIGMA_PX, uv.shape))
+        C_ref, _ = reference_planar_closed_form(p, xy, reference_camera.c_mm)
+        C, unique = centre_planar_kernel(p, xy / reference_camera.c_mm)
+        assert unique
+        np.testing.assert_allclose(C, C_ref, rtol=0, atol=1e-11 * np.linalg.norm(C_ref))
+    # all on one line of the plate: the DLT has a second null vector
+    t = rng.uniform(-200, 200, (12, 1))
+    p = np.column_stack([t, 0.5 * t, np.zeros_like(t)]) + [10.0, -20.0, 0.0]
+    n_img = np.column_stack([0.001 * t[:, 0], 0.0002 * t[:, 0]]) + [0.01, -0.02]
+    C, unique = centre_planar_kernel(p, n_img)
+    assert not unique and np.all(C == 0)
