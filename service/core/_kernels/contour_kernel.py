@@ -126,7 +126,8 @@ def classify_kernel(
         )
         small[c], big[c] = area_px[c] < min_area, area_px[c] > max_area
         long[c] = not (bc * max_aspect >= ac)
-        disk_like[c] = not long[c] and poly_area[c] >= min_polygon_fill * np.pi * ac * bc
+        # a polygon of no area (a 1 px line: zero moments) is no disk, whatever 0 >= 0 says
+        disk_like[c] = not long[c] and poly_area[c] > 0 and poly_area[c] >= min_polygon_fill * np.pi * ac * bc
         host[c] = disk_like[c] and not small[c] and not big[c]  # a disk cut by the border still marks its ring
     return a, cut, small, big, long, disk_like, host
 

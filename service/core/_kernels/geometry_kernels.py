@@ -117,8 +117,13 @@ def point_statistics_kernel(v, A, Qxx, sign):
 @njit(cache=True, error_model="numpy", inline="always")
 def _sensor_from_ideal_point(tx, ty, K1, K2, K3, P1, P2, B1, B2, max_iter):
     """Newton inverse of the Brown/Fraser correction at one ideal point (mm, relative to the
-    principal point): the measured point, until the step is below 1e-12 mm."""
+    principal point): the measured point, until the step is below 1e-12 mm. NaN where there is
+    none: Newton did not converge, or converged beyond the fold of the distortion polynomial
+    (the mapping's Jacobian no longer positive: far outside the lens model's range, e.g. a point
+    45 deg off the axis of a lens whose image ends at 25 deg), never a wrong point inside the image."""
     xb, yb = tx, ty
+    det = 1.0
+    converged = max_iter <= 0  # no step asked for: the start
     for _ in range(max_iter):
         r2 = xb * xb + yb * yb
         radial = r2 * (K1 + r2 * (K2 + r2 * K3))
@@ -135,7 +140,10 @@ def _sensor_from_ideal_point(tx, ty, K1, K2, K3, P1, P2, B1, B2, max_iter):
         xb -= sx
         yb -= sy
         if abs(sx) < 1e-12 and abs(sy) < 1e-12:
+            converged = True
             break
+    if not converged or not det > 0:
+        return np.nan, np.nan
     return xb, yb
 
 

@@ -129,7 +129,7 @@ def _classify_reference(box, area_px, poly_area, mu, width, height, border, min_
     small, big = area_px < min_area, area_px > max_area
     with np.errstate(invalid="ignore"):
         long = ~(b * max_aspect >= a)
-        disk_like = ~long & (poly_area >= fill * np.pi * a * b)
+        disk_like = ~long & (poly_area > 0) & (poly_area >= fill * np.pi * a * b)  # no area: no disk
     return a, cut, small, big, long, disk_like, disk_like & ~small & ~big
 
 

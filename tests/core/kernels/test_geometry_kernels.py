@@ -307,12 +307,6 @@ def test_projection_is_cv2_project_points_through_the_correction(rng, kind):
         assert 0 < inside_ref.sum() < len(inside_ref)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="project_kernel: the Newton inverse of the correction (_sensor_from_ideal_point) diverges for "
-    "points ~45 deg off axis (ideal radius 12 mm, 2.2x the sensor's half diagonal) and returns its last "
-    "iterate unflagged; a few of them land inside the image",
-)
 def test_points_far_outside_the_field_of_view_are_never_reported_inside_the_image():
     camera = _camera("lens")  # the reference camera's own lens
     phi = np.linspace(0, 2 * np.pi, 3600, endpoint=False)
