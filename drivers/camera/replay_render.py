@@ -31,12 +31,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.base import DriverDisconnected, DriverInitError
+from drivers.camera.sim_render_child import shm_dir
 
 POLL_S = 0.2  # how soon a cancel (the camera closed) or a dead child is noticed
-
-
-def _shm_dir() -> str | None:
-    return "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else None
 
 
 def render_in_child(
@@ -63,7 +60,7 @@ def render_in_child(
     """
     dtype = np.dtype(np.uint8 if bit_depth == 8 else np.uint16)
     ctx = multiprocessing.get_context("spawn")
-    tmp = tempfile.mkdtemp(prefix="posecell-replay-", dir=_shm_dir())
+    tmp = tempfile.mkdtemp(prefix="posecell-replay-", dir=shm_dir())
     path = os.path.join(tmp, "frames.raw")
     conn, child_conn = ctx.Pipe(duplex=False)
     child, answered = None, False

@@ -14,20 +14,30 @@ It behaves like a GigE Vision camera in the ways the worker depends on:
   link but delivers no frame (a stuck stream: only timeouts); ``garble()`` delivers frames of
   noise (a broken sensor or a wrong pixel format); ``plug()`` ends every fault.
 
-What it does not model: motion blur within the exposure, rolling shutter,
-packet loss, buffer underruns, and how long rendering takes (a frame is
-handed over no earlier than its scheduled arrival and stamped with it, even
-when rendering made it later).
-The ground truth of every frame is in ``Frame.meta``: ``T_field_camera`` (mm)
-and ``t_exposure_true_host_ns``.
+Rendering (~35 ms a frame) stands in for the camera's exposure and readout; it runs in a child
+process (``sim_render.FrameRenderer``), not under the service's GIL. Knowing its schedule, the
+camera asks for the next ``AHEAD_FRAMES`` frames at once and copies each image out when due.
+A frame's pose is the cell's at mid-exposure (program and commanded moves), computed when it is
+asked for and checked again before and after it is taken: a move commanded after a frame was
+asked for (the hand-eye session moving the arm) has it rendered again, so it may come late
+(stamped with its scheduled arrival all the same). A frame's noise comes from ``(seed, its
+exposure start)``: the same image whichever process renders it. Until the child is ready (1-2 s
+after ``open()``), if it cannot start, or with ``render="inline"``, frames render in this process.
+
+What it does not model: motion blur within the exposure, rolling shutter, packet loss, buffer
+underruns, and how long rendering takes (a frame is handed over no earlier than its scheduled
+arrival and stamped with it, even when rendering made it later). The ground truth of a frame
+is in ``Frame.meta``: ``T_field_camera`` (mm), ``t_exposure_true_host_ns``, and ``render``
+("child" or "inline": where it was rendered).
 """
 
 from __future__ import annotations
 
+import collections
 import math
 import threading
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -41,12 +51,28 @@ from drivers.base import (
     Frame,
     TriggerMode,
 )
+from drivers.camera.sim_render import FrameRenderer, RenderJob
 from service.sim.cell import CellConfig, SimCell
-from service.sim.render import RenderSettings, render_frame
+from service.sim.render import RenderSettings
 
 _LIT_SOURCES = ("ExposureActive", "Timer0Active", "Timer1Active")
 _BIT_DEPTH = {"Mono8": 8, "Mono12": 12, "Mono16": 16}
 REFERENCE_EXPOSURE_US = 2000.0  # the exposure at which RenderSettings.target_dn is reached
+AHEAD_FRAMES = 3  # free run: frames asked of the render process at once (the next one and two more)
+STALE_NS = 250_000_000  # a frame asked for but due longer ago than this is dropped (nobody fetched it)
+RENDER_MARGIN = 1.5  # a frame is asked for when it can be rendered in this many render times before it is due
+
+
+@dataclass(frozen=True)
+class _Planned:
+    """A frame asked of the renderer: its exposure start and arrival (host ns), cell time s, pose (mm)."""
+
+    t_start_ns: int
+    t_arrival_ns: int
+    t_cell_s: float
+    T_field_camera: np.ndarray
+    version: int  # of the settings it was asked for with
+    ticket: int
 
 
 class SimCamera:
@@ -60,6 +86,7 @@ class SimCamera:
     latency_s : transfer delay after the exposure ends (readout + network)
     jitter_s : mean of the extra exponential delay
     clock_offset_s, clock_drift_ppm : the device clock against the host clock
+    render : "process" (a render process, the default) or "inline" (in the fetching thread)
     """
 
     def __init__(
@@ -75,6 +102,7 @@ class SimCamera:
         seed: int = 1,
         serial: str = "SIM-0001",
         T_master_camera: list[list[float]] | None = None,
+        render: str = "process",
     ) -> None:
         self._cell = cell if cell is not None else SimCell(CellConfig(**(cell_config or {})))
         self.epoch_ns = time.monotonic_ns() if epoch_ns is None else int(epoch_ns)
@@ -83,11 +111,15 @@ class SimCamera:
         self.trigger_delay_ns = int(trigger_delay_us * 1e3)
         self.clock_offset_ns = float(clock_offset_s * 1e9)
         self.clock_rate = 1.0 + clock_drift_ppm * 1e-6
-        self._rng = np.random.default_rng(seed)
+        self._seed = int(seed)
+        self._rng = np.random.default_rng(seed)  # arrival jitter and garbled frames; each frame has its own noise
         self._serial = serial
         # a second camera of a rig: its pose relative to the cell's camera (the master), mm
         self.T_master_camera = None if T_master_camera is None else np.asarray(T_master_camera, dtype=np.float64)
+        name, cam, field = f"simulated camera {serial}", self._cell.camera, self._cell.field
+        self._renderer = FrameRenderer(cam, field, render, name, warmup_T_field_camera=self._T_field_camera(0.0))
         self._settings = CameraSettings(strobe=None)
+        self._version = 0  # of the settings: frames asked for with older ones are dropped
         self._open = False
         self._plugged = True
         self._stalled = False
@@ -95,8 +127,7 @@ class SimCamera:
         self._next_seq = 0
         self._last_exposure_start_ns: int | None = None
         self._triggers: list[int] = []
-        self._render_s = 0.03  # running estimate of the time one frame takes to render
-        self._pending_start_ns: int | None = None
+        self._plan: collections.deque[_Planned] = collections.deque()  # asked for, in exposure order
         self._lock = threading.Lock()  # trigger() may come from another thread than fetch()
 
     # --- CameraDriver -------------------------------------------------------------------------
@@ -119,9 +150,17 @@ class SimCamera:
     def cell(self) -> SimCell:
         return self._cell
 
+    @property
+    def render_status(self) -> dict[str, object]:
+        """Where frames are rendered: ``FrameRenderer.status`` (state, pid, restarts, render_ms)."""
+        return self._renderer.status
+
     def open(self) -> None:
         if not self._plugged:
             raise DriverInitError(f"simulated camera {self._serial} is unplugged")
+        if not self._open:
+            self._plan.clear()  # tickets of a closed renderer
+            self._renderer.start()  # returns at once: frames are rendered here until its process is ready
         self._open = True
 
     def configure(self, settings: CameraSettings) -> None:
@@ -143,69 +182,73 @@ class SimCamera:
         with self._lock:
             self._settings = settings
             self._triggers.clear()
-            self._pending_start_ns = None
+            self._version += 1
 
     def fetch(self, timeout_s: float) -> Frame:
         self._require_link()
         deadline = time.monotonic_ns() + int(timeout_s * 1e9)
+        none = f"no frame from simulated camera {self._serial} within {timeout_s:.3f} s"
         if self._stalled:
             time.sleep(timeout_s)
-            raise DriverTimeout(f"no frame from simulated camera {self._serial} within {timeout_s:.3f} s (stalled)")
-        t_start_ns = self._next_exposure_start(deadline)
-        if t_start_ns is None:
-            raise DriverTimeout(f"no frame from simulated camera {self._serial} within {timeout_s:.3f} s")
-        exposure_ns = int(self._exposure_us() * 1e3)
-        t_arrival_ns = t_start_ns + exposure_ns + self.latency_ns + int(self._rng.exponential(self.jitter_ns))
-        if t_arrival_ns - self._render_s * 1e9 > deadline:  # it would not even be rendering by then
+            raise DriverTimeout(f"{none} (stalled)")
+        p = self._next_frame(deadline)
+        if p is None:
+            raise DriverTimeout(none)
+        lead_ns = 0 if self._renderer.in_child(p.ticket) else int(self._renderer.render_s * 1e9)
+        if p.t_arrival_ns - lead_ns > deadline:  # it would not even be rendering by then
             time.sleep(max(0.0, (deadline - time.monotonic_ns()) * 1e-9))
-            raise DriverTimeout(f"no frame from simulated camera {self._serial} within {timeout_s:.3f} s")
-        t_mid_ns = t_start_ns + exposure_ns // 2
-        t_cell_s = (t_mid_ns - self.epoch_ns) * 1e-9
-        t_render = time.perf_counter()
-        if self.T_master_camera is None:
-            rendered = self._cell.render(t_cell_s, self._rng, self._render_settings(), lit=self._lit())
-        else:
-            s = replace(self._render_settings(), lit=self._lit())
-            rendered = render_frame(self._cell.camera, self._cell.field, self._T_field_camera(t_cell_s), s, self._rng)
-        self._render_s = min(0.5, 0.8 * self._render_s + 0.2 * (time.perf_counter() - t_render))
-        image = rendered.image
+            raise DriverTimeout(none)
+        image, by_child = self._take(deadline)
+        if image is None:  # still being rendered: it stays the next frame
+            raise DriverTimeout(f"{none} (still rendering)")
+        p = self._plan[0]  # rendered again if the arm was commanded to move meanwhile
         if self._garbled:  # noise over the whole range: nothing in it may be measured as a target
             image = self._rng.integers(0, np.iinfo(image.dtype).max, image.shape, dtype=image.dtype, endpoint=True)
-        if self._settings.roi is not None:
-            x, y, w, h = self._settings.roi
-            image = np.ascontiguousarray(image[y : y + h, x : x + w])
-        wait_s = (t_arrival_ns - time.monotonic_ns()) * 1e-9
+        wait_s = (p.t_arrival_ns - time.monotonic_ns()) * 1e-9
         if wait_s > 0:
             time.sleep(wait_s)
+        self._plan.popleft()
         self._require_link()  # unplugged while "in flight": the frame is lost with the link
-        seq = self._seq_of(t_start_ns)
-        self._last_exposure_start_ns = t_start_ns
-        self._pending_start_ns = None
+        seq = self._seq_of(p.t_start_ns)
+        self._last_exposure_start_ns = p.t_start_ns
+        exposure_ns = int(self._exposure_us() * 1e3)
         return Frame(
             image=image,
             seq=seq,
             # the scheduled arrival: rendering stands in for the camera's readout, and a triggered
             # frame cannot be rendered before its trigger, so its render time is not latency
-            t_host_ns=t_arrival_ns,
-            t_device_ns=int((t_start_ns - self.clock_offset_ns) * self.clock_rate),
+            t_host_ns=p.t_arrival_ns,
+            t_device_ns=int((p.t_start_ns - self.clock_offset_ns) * self.clock_rate),
             exposure_us=self._exposure_us(),
             meta={
-                "T_field_camera": self._T_field_camera(t_cell_s).tolist(),
-                "t_exposure_true_host_ns": t_mid_ns,
-                "t_cell_s": t_cell_s,
+                "T_field_camera": p.T_field_camera.tolist(),
+                "t_exposure_true_host_ns": p.t_start_ns + exposure_ns // 2,
+                "t_cell_s": p.t_cell_s,
                 "lit": self._lit(),
+                "render": "child" if by_child else "inline",
             },
         )
 
     def try_fetch(self) -> Frame | None:
-        # "waiting" = due within the time it takes to render it (the simulation's readout)
+        # "waiting" = due within the time it still takes to render it (the simulation's readout)
         self._require_link()
         now = time.monotonic_ns()
-        start = self._peek_exposure_start(now)
-        if start is None:
+        mode = self._settings.trigger
+        if mode is TriggerMode.HARDWARE:
             return None
-        due = start + int(self._exposure_us() * 1e3) + self.latency_ns
-        if due - now > self._render_s * 1.5e9 + 1e6:
+        if mode is TriggerMode.FREE_RUN:
+            self._revise_plan()
+            self._fill_plan(now)
+        if self._plan:
+            due = self._plan[0].t_arrival_ns
+            child = self._renderer.in_child(self._plan[0].ticket)
+        else:
+            with self._lock:
+                if not self._triggers:
+                    return None
+                due = self._triggers[0] + int(self._exposure_us() * 1e3) + self.latency_ns
+            child = False
+        if due - now > (0 if child else self._renderer.render_s * RENDER_MARGIN * 1e9) + 1e6:
             return None
         return self.fetch(timeout_s=1.0)
 
@@ -218,6 +261,7 @@ class SimCamera:
 
     def close(self) -> None:
         self._open = False
+        self._renderer.close()  # its process ends within a second
 
     def _T_field_camera(self, t_cell_s: float) -> np.ndarray:
         T = self._cell.T_field_camera(t_cell_s)
@@ -238,6 +282,89 @@ class SimCamera:
     def garble(self) -> None:
         self._garbled = True
 
+    # --- the exposure schedule and the frames asked for -----------------------------------------
+
+    def _next_frame(self, deadline_ns: int) -> _Planned | None:
+        """The next frame to deliver (asked of the renderer), or None when none will be exposed by the deadline."""
+        self._revise_plan()
+        mode = self._settings.trigger
+        if mode is TriggerMode.FREE_RUN:
+            self._fill_plan(time.monotonic_ns())
+        elif mode is TriggerMode.HARDWARE:
+            time.sleep(max(0.0, (deadline_ns - time.monotonic_ns()) * 1e-9))
+            return None  # no trigger line in the simulation
+        while not self._plan:  # software trigger
+            with self._lock:
+                t_start_ns = self._triggers.pop(0) if self._triggers else None
+            if t_start_ns is not None:
+                self._plan.append(self._ask(t_start_ns))
+            elif time.monotonic_ns() >= deadline_ns:
+                return None
+            else:
+                time.sleep(0.0005)
+        return self._plan[0]
+
+    def _revise_plan(self) -> None:
+        """Drop the frames asked for with older settings; ask again for those whose pose has changed since."""
+        if self._plan and self._plan[-1].version != self._version:
+            for p in self._plan:
+                self._renderer.cancel(p.ticket)
+            self._plan.clear()
+        for i in range(len(self._plan)):
+            p = self._plan[i]
+            if not np.array_equal(self._T_field_camera(p.t_cell_s), p.T_field_camera):  # a move was commanded
+                self._renderer.cancel(p.ticket)
+                self._plan[i] = self._ask(p.t_start_ns, p.t_arrival_ns)
+
+    def _fill_plan(self, now_ns: int) -> None:
+        """Free run: ask for the next frames on the grid that can be rendered before they are due."""
+        while self._plan and self._plan[0].t_arrival_ns < now_ns - STALE_NS:  # nobody fetched it in time
+            self._renderer.cancel(self._plan.popleft().ticket)
+        ahead = AHEAD_FRAMES if self._renderer.child_ready else 1  # in-process: rendered when taken
+        if len(self._plan) >= ahead:
+            return
+        period = self._period_ns()
+        exposure_ns = int(self._exposure_us() * 1e3)
+        backlog = self._renderer.backlog() if ahead > 1 else 0
+        while len(self._plan) < ahead:
+            # the first frame that can still be rendered before it is due (after those asked for
+            # already): rendering stands in for the camera's own exposure and readout, so it must
+            # not make frames late; one after those asked for may be up to a period late (a render
+            # slower than the rest) rather than not come at all
+            late_ns = period if self._plan else 0
+            ready_ns = now_ns + int(self._renderer.render_s * 1e9 * (backlog + RENDER_MARGIN)) - late_ns
+            k = math.ceil((ready_ns - self.epoch_ns - exposure_ns - self.latency_ns) / period)
+            last = self._plan[-1].t_start_ns if self._plan else self._last_exposure_start_ns
+            if last is not None:  # once asked for, a frame stays the next one until delivered or stale
+                k = max(k, (last - self.epoch_ns) // period + 1)
+            self._plan.append(self._ask(self.epoch_ns + k * period))
+            backlog += 1
+
+    def _ask(self, t_start_ns: int, t_arrival_ns: int | None = None) -> _Planned:
+        """Ask the renderer for the frame exposed from ``t_start_ns``: the cell's pose at mid-exposure, now."""
+        exposure_ns = int(self._exposure_us() * 1e3)
+        if t_arrival_ns is None:
+            t_arrival_ns = t_start_ns + exposure_ns + self.latency_ns + int(self._rng.exponential(self.jitter_ns))
+        t_cell_s = (t_start_ns + exposure_ns // 2 - self.epoch_ns) * 1e-9
+        T = self._T_field_camera(t_cell_s)
+        settings = replace(self._render_settings(), lit=self._lit())
+        job = RenderJob(T, settings, (self._seed, (t_start_ns - self.epoch_ns) % 2**63))
+        ticket = self._renderer.submit(job)
+        return _Planned(t_start_ns, t_arrival_ns, t_cell_s, T, self._version, ticket)
+
+    def _take(self, deadline_ns: int) -> tuple[np.ndarray | None, bool]:
+        """The next frame's image (ROI), None if not rendered by the deadline, and whether the child rendered it.
+
+        A move commanded while it was rendered has it rendered again (twice at most; then it comes as it is)."""
+        for attempt in range(3):
+            p = self._plan[0]
+            by_child = self._renderer.in_child(p.ticket)
+            image = self._renderer.take(p.ticket, deadline_ns, self._settings.roi)
+            if image is None or attempt == 2 or np.array_equal(self._T_field_camera(p.t_cell_s), p.T_field_camera):
+                break
+            self._plan[0] = self._ask(p.t_start_ns, p.t_arrival_ns)
+        return image, by_child
+
     # --- internals ----------------------------------------------------------------------------
 
     def _require_link(self) -> None:
@@ -251,42 +378,6 @@ class SimCamera:
 
     def _period_ns(self) -> int:
         return int(1e9 / (self._settings.frame_rate_hz or 30.0))
-
-    def _peek_exposure_start(self, now_ns: int) -> int | None:
-        mode = self._settings.trigger
-        if mode is TriggerMode.SOFTWARE:
-            with self._lock:
-                return self._triggers[0] if self._triggers else None
-        if mode is TriggerMode.HARDWARE:
-            return None  # no trigger line in the simulation
-        if self._pending_start_ns is not None:
-            return self._pending_start_ns
-        period = self._period_ns()
-        exposure_ns = int(self._exposure_us() * 1e3)
-        # the next frame that can still be rendered before it is due: rendering stands in for the
-        # camera's own exposure and readout, so it must not make frames late
-        ready_ns = now_ns + int(self._render_s * 1e9 * 1.5)
-        k = math.ceil((ready_ns - self.epoch_ns - exposure_ns - self.latency_ns) / period)
-        start = self.epoch_ns + k * period
-        last = self._last_exposure_start_ns
-        # once chosen, a frame stays the next one until delivered: re-choosing on every short
-        # fetch would push it ahead for ever when rendering is slow
-        self._pending_start_ns = start if last is None or start > last else last + period
-        return self._pending_start_ns
-
-    def _next_exposure_start(self, deadline_ns: int) -> int | None:
-        if self._settings.trigger is TriggerMode.SOFTWARE:
-            while True:
-                with self._lock:
-                    if self._triggers:
-                        return self._triggers.pop(0)
-                if time.monotonic_ns() >= deadline_ns:
-                    return None
-                time.sleep(0.0005)
-        if self._settings.trigger is TriggerMode.HARDWARE:
-            time.sleep(max(0.0, (deadline_ns - time.monotonic_ns()) * 1e-9))
-            return None
-        return self._peek_exposure_start(time.monotonic_ns())
 
     def _seq_of(self, t_start_ns: int) -> int:
         if self._settings.trigger is TriggerMode.FREE_RUN:
@@ -302,7 +393,5 @@ class SimCamera:
         gain = 10 ** ((self._settings.gain_db or 0.0) / 20.0)
         depth = _BIT_DEPTH[self._settings.pixel_format or "Mono8"]
         return replace(
-            RenderSettings(),
-            exposure_scale=self._exposure_us() / REFERENCE_EXPOSURE_US * gain,
-            bit_depth=depth,
+            RenderSettings(), exposure_scale=self._exposure_us() / REFERENCE_EXPOSURE_US * gain, bit_depth=depth
         )
