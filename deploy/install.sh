@@ -55,6 +55,12 @@ install -m 0644 "$src/deploy/posecell.service" /etc/systemd/system/posecell.serv
 install -m 0644 "$src/deploy/99-posecell-gige.conf" /etc/sysctl.d/99-posecell-gige.conf
 sysctl --quiet --load /etc/sysctl.d/99-posecell-gige.conf || echo "install.sh: sysctl not applied (container?)" >&2
 
+# the numba kernels compiled now, into the service's own cache (posecell.service sets NUMBA_CACHE_DIR),
+# so that the first start is ready in seconds instead of after a minute or two of compiling
+install -d -m 0750 -o posecell -g posecell /var/lib/posecell /var/lib/posecell/numba-cache
+runuser -u posecell -- env NUMBA_CACHE_DIR=/var/lib/posecell/numba-cache \
+    "$prefix/.venv/bin/python" -m service.pipeline.compile
+
 if [ -d /run/systemd/system ]; then
     systemctl daemon-reload
     if [ "$start" -eq 1 ]; then
