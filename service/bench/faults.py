@@ -20,38 +20,13 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from service.bench.child import serve_child
+
 POLL_S = 0.01
-
-
-@contextmanager
-def _service(state_dir: str) -> Iterator[tuple[str, str]]:
-    """``posecell serve`` on the simulated cell in a child process, as an integrator runs it."""
-    import os
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = int(s.getsockname()[1])
-    token = "bench"
-    env = {**os.environ, "POSECELL_SERVER__TOKEN": token, "POSECELL_LOG_LEVEL": "warning"}
-    child = subprocess.Popen(
-        [sys.executable, "-m", "service.cli.main", "serve", "--port", str(port), "--state-dir", state_dir],
-        env=env,
-        stdout=subprocess.DEVNULL,
-    )
-    try:
-        yield f"http://127.0.0.1:{port}", token
-    finally:
-        child.terminate()
-        try:
-            child.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            child.kill()
 
 
 def _until(predicate: Callable[[], bool], timeout_s: float, t0: float | None = None) -> float:
@@ -72,7 +47,8 @@ def run(rounds: int = 5) -> str:
     def add(name: str, seconds: float) -> None:
         rows.setdefault(name, []).append(seconds * 1e3)
 
-    with tempfile.TemporaryDirectory() as state, _service(state) as (url, token):
+    with tempfile.TemporaryDirectory() as state, serve_child(Path(state)) as served:
+        url, token = served.url, served.token
         c = httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=10.0)
 
         def health() -> dict[str, Any]:

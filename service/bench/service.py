@@ -24,15 +24,12 @@ from __future__ import annotations
 
 import asyncio
 import os
-import socket
-import subprocess
-import sys
 import tempfile
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+
+from service.bench.child import serve_child
 
 RATES_HZ = (100, 250, 500, 1000)
 CLIENTS = (1, 50)
@@ -50,31 +47,6 @@ options = {{ source = "sim" }}
 [storage]
 stream_every_s = 0.0  # every result committed
 """
-
-
-@contextmanager
-def _service(state_dir: Path, rate_hz: float) -> Iterator[tuple[str, int]]:
-    """``posecell serve`` with the replay camera in a child process: (base URL, its pid)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = int(s.getsockname()[1])
-    config = state_dir / "bench.toml"
-    config.write_text(_config(rate_hz))
-    env = {**os.environ, "POSECELL_SERVER__TOKEN": "bench", "POSECELL_LOG_LEVEL": "warning"}
-    cmd = [sys.executable, "-m", "service.cli.main", "serve", "--config", str(config)]
-    cmd += ["--port", str(port), "--state-dir", str(state_dir)]
-    child = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    try:
-        yield f"127.0.0.1:{port}", child.pid
-    finally:
-        child.terminate()
-        try:
-            child.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            child.kill()
-            child.wait(timeout=5)
-        if child.stderr is not None:
-            child.stderr.close()
 
 
 def _cpu_s(pid: int) -> float:
@@ -150,12 +122,20 @@ def _quantile(values: list[float], q: float) -> float:
 
 def measure(rate_hz: float, n_clients: int, seconds: float, warmup_s: float = 3.0) -> dict[str, Any]:
     """One row of the table (see the module docstring)."""
-    with tempfile.TemporaryDirectory() as state, _service(Path(state), rate_hz) as (address, pid):
-        _wait_ready(address, timeout_s=300.0)
-        time.sleep(warmup_s)  # the ROI tracking locked on, the clock fits settled
-        h0, cpu0 = _health(address), _cpu_s(pid)
-        probe = asyncio.run(_clients(address, n_clients, seconds))
-        h1, cpu1 = _health(address), _cpu_s(pid)
+    with tempfile.TemporaryDirectory() as state:
+        config = Path(state) / "bench.toml"
+        config.write_text(_config(rate_hz))
+        with serve_child(Path(state), config) as served:
+            return _measure(served.address, served.pid, rate_hz, n_clients, seconds, warmup_s)
+
+
+def _measure(address: str, pid: int, rate_hz: float, n_clients: int, seconds: float, warmup_s: float) -> dict[str, Any]:
+    """One row measured on a running service (its address and process id)."""
+    _wait_ready(address, timeout_s=300.0)
+    time.sleep(warmup_s)  # the ROI tracking locked on, the clock fits settled
+    h0, cpu0 = _health(address), _cpu_s(pid)
+    probe = asyncio.run(_clients(address, n_clients, seconds))
+    h1, cpu1 = _health(address), _cpu_s(pid)
     if len(probe) < 2:
         raise RuntimeError(f"{rate_hz} Hz, {n_clients} clients: the probe received {len(probe)} results")
     latency_ms = [(t - e) * 1e-6 for t, e, _ in probe]
