@@ -72,6 +72,10 @@ class ServerSettings(_Section):
     ws_ping_interval_s: float = Field(20.0, gt=0)  # WebSocket keep-alive ping; no pong within the
     ws_ping_timeout_s: float = Field(20.0, gt=0)  # timeout: the client is dropped
     ws_max_message_bytes: int = Field(64 * 1024, ge=1024)  # largest message a WebSocket client may send
+    # permessage-deflate on /ws/poses: off by default. Each connection compresses every message
+    # again in its own zlib context, so it costs CPU per client and message (on a cell's LAN the
+    # bandwidth it saves is not short); turn it on for clients behind a slow link
+    ws_compression: bool = False
     # a /ws/poses client whose socket has taken nothing for this long (it stopped reading and the
     # buffers are full) is disconnected; the ping above finds one that stopped earlier
     ws_stall_timeout_s: float = Field(10.0, gt=0, le=3600)

@@ -10,10 +10,13 @@ from service.bench import service as bench_service
 
 
 def test_the_probe_reads_exposure_and_seq_without_parsing_the_message():
-    text = json.dumps({"ok": True, "seq": 1234, "t_exposure_unix_ns": 1_764_000_000_123_456_789, "targets": []})
-    assert bench_service._int_after(text, '"seq":') == 1234
-    assert bench_service._int_after(text.replace(" ", ""), '"t_exposure_unix_ns":') == 1_764_000_000_123_456_789
-    assert bench_service._int_after(text, '"missing":') is None
+    data = json.dumps(
+        {"ok": True, "seq": 1234, "t_exposure_unix_ns": 1_764_000_000_123_456_789, "targets": []}
+    ).encode()
+    assert bench_service._int_after(data, b'"seq":') == 1234
+    assert bench_service._int_after(data.replace(b" ", b""), b'"t_exposure_unix_ns":') == 1_764_000_000_123_456_789
+    assert bench_service._int_after(data, b'"missing":') is None
+    assert bench_service._int_after(b'{"seq":-3}', b'"seq":') == -3
 
 
 @pytest.mark.slow  # starts the service and renders the replay frames

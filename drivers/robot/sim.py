@@ -137,6 +137,7 @@ class SimRobot:
         period_ns = int(1e9 / self.rate_hz)
         k = (time.monotonic_ns() - self.epoch_ns) // period_ns + 1
         pending: list[tuple[int, tuple[np.ndarray, np.ndarray, float, float]]] = []  # reports in flight
+        ahead = _Ahead()
         while not self._stop.is_set():
             now = time.monotonic_ns()
             if now - (self.epoch_ns + k * period_ns) > 100_000_000:  # fell far behind (busy machine)
@@ -144,7 +145,7 @@ class SimRobot:
             while self.epoch_ns + k * period_ns <= now:
                 t_tick_ns = self.epoch_ns + k * period_ns
                 t_cell_s = (t_tick_ns - self.epoch_ns) * 1e-9
-                T_nominal, q_measured = self._cell.robot_report(t_cell_s, self._rng)
+                T_nominal, q_measured = ahead.report(self._cell, k, period_ns * 1e-9, self._rng)
                 arrival = t_tick_ns + self.latency_ns + int(self._rng.exponential(self.jitter_ns))
                 t_robot_s = (t_tick_ns * 1e-9 - self.clock_offset_s) * self.clock_rate
                 pending.append((arrival, (T_nominal, q_measured, t_robot_s, t_cell_s)))
@@ -160,3 +161,23 @@ class SimRobot:
             delay = (wake - time.monotonic_ns()) * 1e-9
             if delay > 0:
                 self._stop.wait(delay)
+
+
+AHEAD_TICKS = 8  # reports computed together: one vectorised forward kinematics instead of eight
+
+
+class _Ahead:
+    """The controller's next reports, computed a few ticks at a time (at 500 Hz one tick's forward
+    kinematics cost a tenth of the service's interpreter time); a new command to the cell makes
+    them be computed again, so a report never lags a commanded motion."""
+
+    def __init__(self) -> None:
+        self.k0, self.T, self.q = 0, np.zeros((0, 4, 4)), np.zeros((0, 6))
+        self.commands: object = None
+
+    def report(self, cell: SimCell, k: int, period_s: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        i = k - self.k0
+        if cell.commands is not self.commands or not 0 <= i < len(self.T):
+            self.commands, self.k0, i = cell.commands, k, 0
+            self.T, self.q = cell.robot_report((k + np.arange(AHEAD_TICKS)) * period_s, rng)
+        return self.T[i], self.q[i]

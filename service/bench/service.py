@@ -4,9 +4,12 @@ For each frame rate and number of WebSocket clients it starts ``posecell serve``
 in a child process (real HTTP and WebSocket on loopback, storage on: every
 result committed) with the ``replay`` camera (the simulated cell's path
 rendered once, ahead, in another process, so the renderer does not compete with
-the measurement) and the simulated robot. After a warm-up the clients, in a
-process of their own, read ``/ws/poses`` for ``seconds``; one of them (the
-probe) stamps every message on arrival. Reported per row:
+the measurement) and the simulated robot. After a warm-up the clients read
+``/ws/poses`` for ``seconds``: one of them (the probe) in this process, stamping
+every message on arrival; the others in a process of their own, so that their
+reading does not delay the probe's stamps. They take the messages as bytes (no
+text decoding: a load client needs none), so that on a machine with few cores
+they take as little as they can from the service they measure. Reported per row:
 
 - *results/s*: messages the probe received per second;
 - *lost*: frames exposed in the window whose result never reached the probe
@@ -23,6 +26,7 @@ probe) stamps every message on arrival. Reported per row:
 from __future__ import annotations
 
 import asyncio
+import multiprocessing
 import os
 import tempfile
 import time
@@ -54,44 +58,76 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) * _CLOCK_TICK_S  # utime, stime
 
 
-def _int_after(text: str, key: str) -> int | None:
+def _int_after(data: bytes, key: bytes) -> int | None:
     """The integer after ``"key":`` in a message, without parsing the whole JSON (the probe keeps up)."""
-    i = text.find(key)
+    i = data.find(key)
     if i < 0:
         return None
     i += len(key)
-    while i < len(text) and text[i] == " ":
+    while i < len(data) and data[i : i + 1] == b" ":
         i += 1
     j = i
-    while j < len(text) and (text[j].isdigit() or text[j] == "-"):
+    while j < len(data) and (data[j : j + 1].isdigit() or data[j : j + 1] == b"-"):
         j += 1
-    return int(text[i:j]) if j > i else None
+    return int(data[i:j]) if j > i else None
 
 
-async def _clients(address: str, n_clients: int, seconds: float) -> list[tuple[int, int, int]]:
-    """Read ``/ws/poses`` with ``n_clients`` for ``seconds``; the probe's (arrival ns, exposure ns, seq)."""
+async def _probe(address: str, seconds: float) -> list[tuple[int, int, int]]:
+    """Read ``/ws/poses`` for ``seconds``: (arrival ns, exposure ns, seq) of every message."""
     from websockets.asyncio.client import connect
 
     probe: list[tuple[int, int, int]] = []
     stop_at = time.monotonic() + seconds
+    async with connect(f"ws://{address}/ws/poses?camera=cam0", max_size=None) as ws:
+        await ws.recv()  # the newest result at connection: not part of the window
+        while (left := stop_at - time.monotonic()) > 0:
+            try:
+                data = await asyncio.wait_for(ws.recv(decode=False), left)
+            except TimeoutError:
+                break
+            t_ns = time.time_ns()
+            assert isinstance(data, bytes)
+            exposure, seq = _int_after(data, b'"t_exposure_unix_ns":'), _int_after(data, b'"seq":')
+            if exposure is not None and seq is not None:
+                probe.append((t_ns, exposure, seq))
+    return probe
 
-    async def client(is_probe: bool) -> None:
+
+async def _load(address: str, n_clients: int, seconds: float) -> None:
+    from websockets.asyncio.client import connect
+
+    stop_at = time.monotonic() + seconds
+
+    async def client() -> None:
         async with connect(f"ws://{address}/ws/poses?camera=cam0", max_size=None) as ws:
-            await ws.recv()  # the newest result at connection: not part of the window
             while (left := stop_at - time.monotonic()) > 0:
                 try:
-                    text = await asyncio.wait_for(ws.recv(), left)
+                    await asyncio.wait_for(ws.recv(decode=False), left)
                 except TimeoutError:
                     break
-                if is_probe:
-                    t_ns = time.time_ns()
-                    assert isinstance(text, str)
-                    exposure, seq = _int_after(text, '"t_exposure_unix_ns":'), _int_after(text, '"seq":')
-                    if exposure is not None and seq is not None:
-                        probe.append((t_ns, exposure, seq))
 
-    await asyncio.gather(client(True), *(client(False) for _ in range(n_clients - 1)))
-    return probe
+    await asyncio.gather(*(client() for _ in range(n_clients)))
+
+
+def _load_process(address: str, n_clients: int, seconds: float) -> None:
+    asyncio.run(_load(address, n_clients, seconds))
+
+
+def _clients(address: str, n_clients: int, seconds: float) -> list[tuple[int, int, int]]:
+    """The probe's messages while ``n_clients - 1`` other clients read too (in a spawned process)."""
+    if n_clients <= 1:
+        return asyncio.run(_probe(address, seconds))
+    load = multiprocessing.get_context("spawn").Process(
+        target=_load_process, args=(address, n_clients - 1, seconds + 1.0), daemon=True
+    )
+    load.start()
+    try:
+        time.sleep(1.0)  # the load clients connected (a spawned interpreter starts in ~0.5 s)
+        return asyncio.run(_probe(address, seconds))
+    finally:
+        load.join(timeout=10.0)
+        if load.is_alive():
+            load.kill()
 
 
 def _health(address: str) -> dict[str, Any]:
@@ -134,7 +170,7 @@ def _measure(address: str, pid: int, rate_hz: float, n_clients: int, seconds: fl
     _wait_ready(address, timeout_s=300.0)
     time.sleep(warmup_s)  # the ROI tracking locked on, the clock fits settled
     h0, cpu0 = _health(address), _cpu_s(pid)
-    probe = asyncio.run(_clients(address, n_clients, seconds))
+    probe = _clients(address, n_clients, seconds)
     h1, cpu1 = _health(address), _cpu_s(pid)
     if len(probe) < 2:
         raise RuntimeError(f"{rate_hz} Hz, {n_clients} clients: the probe received {len(probe)} results")

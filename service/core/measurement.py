@@ -17,7 +17,6 @@ exposure, ``camera_state`` says why) and the newest result served late
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
@@ -26,6 +25,7 @@ from types import MappingProxyType
 from typing import Any
 
 import numpy as np
+import orjson
 from numpy.typing import NDArray
 
 from service.core.results import Failure, PoseResult, Reason
@@ -186,7 +186,7 @@ class Measurement:
 
     def to_dict(self, targets: bool = True) -> dict[str, Any]:
         """The wire form as a new dict (exactly what :attr:`json` says: finite, rounded)."""
-        parsed: dict[str, Any] = json.loads(self.json if targets else self.json_without_targets)
+        parsed: dict[str, Any] = orjson.loads(self.json if targets else self.json_without_targets)
         return parsed
 
     @cached_property
@@ -233,26 +233,13 @@ class Measurement:
 
 
 def _dumps(d: dict[str, Any]) -> str:
-    # strict JSON first (the common case costs one pass); NaN or infinities (a σ of an unobservable
-    # direction is infinite) have no JSON: then the walk that makes them null
-    try:
-        return json.dumps(d, separators=(",", ":"), allow_nan=False, default=_null)
-    except ValueError:
-        return json.dumps(_finite(d), separators=(",", ":"), allow_nan=False, default=_null)
+    # orjson: one pass in C, a tenth of the standard encoder's time on a frame's targets (the hot
+    # path's largest cost after the measurement). NaN and infinities (a σ of an unobservable
+    # direction is infinite) have no JSON: orjson writes them as null, as DESIGN section 4 says.
+    return orjson.dumps(d, default=_null, option=_OPTIONS).decode()
 
 
-def _finite(d: dict[str, Any]) -> dict[str, Any]:
-
-    def clean(v: Any) -> Any:
-        if isinstance(v, float):
-            return v if np.isfinite(v) else None
-        if isinstance(v, list):
-            return [clean(x) for x in v]
-        if isinstance(v, dict):
-            return {k: clean(x) for k, x in v.items()}
-        return v
-
-    return {k: clean(v) for k, v in d.items()}
+_OPTIONS = orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_NON_STR_KEYS
 
 
 def _null(o: Any) -> Any:

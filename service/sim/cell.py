@@ -194,6 +194,12 @@ class SimCell:
     # -- state at a time ------------------------------------------------------------
 
     @property
+    def commands(self) -> tuple[tuple[float, JointTrajectory], ...]:
+        """The commanded motions (start s, trajectory), replaced whole by each new command: a reader
+        that computed reports ahead knows by identity that they still hold."""
+        return self._moves
+
+    @property
     def duration_s(self) -> float:
         """One pass of the program (s); the cell loops it."""
         return self.trajectory.duration_s
@@ -236,15 +242,16 @@ class SimCell:
         """Where the controller believes the flange is, without encoder noise: ``nominal.fk(q)``."""
         return self.nominal.fk(self.q_at(t_s))
 
-    def robot_report(self, t_s: float, rng: np.random.Generator | None) -> tuple[Array, Array]:
-        """What the controller reports at ``t_s``: ``(T_base_flange (4, 4) mm, q_measured_rad (6,))``.
+    def robot_report(self, t_s: ArrayLike, rng: np.random.Generator | None) -> tuple[Array, Array]:
+        """What the controller reports at ``t_s``: ``(T_base_flange (4, 4) mm, q_measured_rad (6,))``,
+        or (M, 4, 4) and (M, 6) for M instants.
 
         ``q_measured = q + N(0, encoder_noise_rad)`` per joint (none when ``rng``
         is None), and the pose is the nominal model's ``fk(q_measured)``.
         """
         q = self.q_at(t_s)
         if rng is not None and self.config.encoder_noise_rad > 0:
-            q = q + rng.normal(0.0, self.config.encoder_noise_rad, 6)
+            q = q + rng.normal(0.0, self.config.encoder_noise_rad, q.shape)
         return self.nominal.fk(q), q
 
     def T_field_camera(self, t_s: ArrayLike) -> Array:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+from websockets.sync.client import connect as ws_connect
 
 from tests.api.conftest import free_port
 
@@ -56,6 +58,12 @@ def test_serve_runs_the_simulated_cell_from_a_config_file_and_stops_cleanly(tmp_
         assert h["cameras"]["cam0"]["state"] == "ok"
         r = httpx.post(f"http://127.0.0.1:{port}/measure", json={}, headers={"Authorization": "Bearer e2e"}, timeout=10)
         assert r.status_code == 200 and r.json()["ok"] is True
+        # the client offers permessage-deflate (the websockets library does by default); the
+        # service declines it unless [server] ws_compression is on: compressing costs CPU per client
+        with ws_connect(f"ws://127.0.0.1:{port}/ws/poses") as ws:
+            assert "permessage-deflate" in (ws.request.headers.get("Sec-WebSocket-Extensions") or "")
+            assert ws.response.headers.get("Sec-WebSocket-Extensions") is None
+            assert json.loads(ws.recv(timeout=10))["camera"] == "cam0"
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
@@ -91,3 +99,12 @@ def test_systemd_unit_verifies_and_is_hardened(tmp_path):
     )
     exposure = float(r.stdout.split("Overall exposure level for posecell.service:")[1].split()[0])
     assert exposure < 4.5  # "OK" on systemd's scale (lower is safer)
+
+
+def test_websocket_compression_is_an_option_passed_to_uvicorn():
+    from api.serve import uvicorn_config
+    from service.settings import Settings
+
+    assert uvicorn_config(object(), Settings()).ws_per_message_deflate is False
+    on = Settings.model_validate({"server": {"ws_compression": True}})
+    assert uvicorn_config(object(), on).ws_per_message_deflate is True

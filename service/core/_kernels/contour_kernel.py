@@ -16,14 +16,14 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _maximum(a: float, b: float) -> float:  # np.maximum: NaN-propagating
     if a != a or a > b:
         return a
     return b
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _contour_sums(pts, starts, lengths):
     """Per closed polygon (C) of the vertices ``pts`` (M, 2) int, px, from ``starts`` with
     ``lengths``: its box (C, 4) u0 v0 u1 v1 inclusive, the Green's-theorem sums (7, C) relative to
@@ -66,7 +66,7 @@ def _contour_sums(pts, starts, lengths):
     return box, sums, reach
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def contour_stats_kernel(pts, starts, lengths):
     """Per closed polygon (C) of the vertices ``pts`` (M, 2) int, px, from ``starts`` with ``lengths``:
     box (C, 4) u0 v0 u1 v1 inclusive, pixel area (Pick's theorem), polygon area, centroid (C, 2),
@@ -97,14 +97,14 @@ def contour_stats_kernel(pts, starts, lengths):
     return box, area_px, poly_area, centre, mu, box_centre, reach
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _axes(uu, uv, vv):
     """Semi-axes a >= b of the uniform ellipse with second moments uu, uv, vv."""
     half_tr, root = 0.5 * (uu + vv), np.sqrt(0.25 * (uu - vv) ** 2 + uv * uv)
     return 2 * np.sqrt(half_tr + root), 2 * np.sqrt(_maximum(half_tr - root, 0.0))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def classify_kernel(
     box, area_px, poly_area, mu, width, height, border, min_area, max_area, max_aspect, min_polygon_fill
 ):
@@ -132,7 +132,7 @@ def classify_kernel(
     return a, cut, small, big, long, disk_like, host
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def windows_kernel(box_centre, reach, mu, centre, todo, near, width, height, window_px, radii, margin):
     """Window radius (n,) of each contour ``todo`` (n,) to measure, its own region (n, 5) where
     another blob reaches into the window (its thresholded ellipse + 1.5 px, as (x0, y0, Q_uu, Q_uv,

@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _box_grid(box, cell, width, height):
     """Every contour listed in each ``cell`` x ``cell`` px grid cell its box (C, 4) overlaps
     (counting sort): (nx, ny, start (nx * ny + 1,), members). A contour whose box spans
@@ -42,7 +42,7 @@ def _box_grid(box, cell, width, height):
     return nx, ny, start, members
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _pairs_near(box, centre, box_centre, reach, a, host, query, ring_outer, width, height):
     """Ordered pairs (i, j): ``i`` a query (a candidate to measure or a host), ``j`` any other
     contour whose box comes within ``R_i`` of i's centre, where ``R_i`` holds i's ring (a host's
@@ -104,7 +104,7 @@ def _pairs_near(box, centre, box_centre, reach, a, host, query, ring_outer, widt
     return pi[:m], pj[:m], visits
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def neighbours_kernel(
     box, centre, mu, box_centre, reach, a, host, disk_like, query, ring_inner, ring_outer, min_piece_half, width, height
 ):
@@ -170,7 +170,7 @@ def neighbours_kernel(
     return host_of, near, m, visits
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _kth_smallest(x, k):
     """The k-th smallest value (0-based) of ``x`` (no NaN), reordering it: Hoare's selection."""
     lo, hi = 0, x.size - 1
@@ -195,7 +195,7 @@ def _kth_smallest(x, k):
     return x[k]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def mask_windows_kernel(img, cu, cv, half, crowd, own, seg):
     """The crowded windows' pixels with other blobs set to the background (``detect._mask_others``).
 

@@ -30,7 +30,7 @@ ROLL_DEG, CONFIDENCE, DISK_DN, BACKGROUND_DN = 0, 1, 2, 3
 _TWO_PI = 2.0 * np.pi
 
 
-@njit(cache=True, boundscheck=False, error_model="numpy")
+@njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
 def _sample(img, mode, e, m00, m01, m10, m11, pts, out):
     """``out[k]`` = the image at the normalised point ``pts[k]`` of the ellipse ``e`` with the affine
     map ``m``; NaN outside. The points are placed in float64 and used as float32, like
@@ -68,7 +68,7 @@ def _sample(img, mode, e, m00, m01, m10, m11, pts, out):
             out[k] = np.rint(s) if mode == ROUNDED else s
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _insertion_sort(x, n):
     for i in range(1, n):
         a, j = x[i], i - 1
@@ -78,7 +78,7 @@ def _insertion_sort(x, n):
         x[j + 1] = a
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _middle(work, n):
     """Median of ``work[:n]`` (n >= 1), reordering it: the mean of its two middle values."""
     k = n // 2
@@ -91,7 +91,7 @@ def _middle(work, n):
     return 0.5 * (lower + upper)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _median(x, work):
     """Median of ``x`` (NaN if any is NaN, as ``np.median``); ``work`` is scratch of len(x)."""
     n = x.size
@@ -102,7 +102,7 @@ def _median(x, work):
     return _middle(work, n)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _finite_median(x, work):
     """Median of the finite values of ``x``; NaN without any."""
     k = 0
@@ -115,14 +115,14 @@ def _finite_median(x, work):
     return _middle(work, k)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _affine(e):
     """M = Rot(angle) @ diag(a, b): the unit circle onto the ellipse (u_c, v_c, a, b, angle)."""
     ca, sa = np.cos(e[4]), np.sin(e[4])
     return ca * e[2], -sa * e[3], sa * e[2], ca * e[3]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _ellipse_from_conic(A, B, C, D, E):
     """Centre, semi-axes (major first), major axis angle and validity of ``A x^2 + B xy + C y^2 +
     D x + E y = 1``."""
@@ -147,7 +147,7 @@ def _ellipse_from_conic(A, B, C, D, E):
     return cx, cy, a_ax, b_ax, angle, ok
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _fit_conic(r, ray, found, size, G, g, row):
     """Direct least-squares conic through the points ``r[d] * ray[d]`` px with ``found[d]``,
     about the ellipse's centre; returns its centre offset, semi-axes, angle and validity.
@@ -173,7 +173,7 @@ def _fit_conic(r, ray, found, size, G, g, row):
     return cx * size, cy * size, a_ax * size, b_ax * size, angle, ok
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _may_have_ring(img, mode, e, pts, vals, work):
     """Whether anything in the ring zone (``pts[13:]``) is clearly brighter than the gap
     (``pts[1:13]``) round the disk's centre (``pts[0]``). ``vals`` (len(pts),) and ``work`` (12,)
@@ -188,7 +188,7 @@ def _may_have_ring(img, mode, e, pts, vals, work):
     return disk > gap and ring_max - gap > 0.25 * (disk - gap)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _refine(img, mode, e, rho, step, dirs, pts, lo_index, lo_gamma, out, ws, found, ray, G, g, row):
     """Re-fit the disk ellipse ``e`` to the half-level edge along the rays ``dirs`` (D, 2) sampled
     at ``rho`` (R,) (``pts`` = rho x dirs); write it to ``out`` (5,). Step 1 of the
@@ -272,14 +272,14 @@ def _refine(img, mode, e, rho, step, dirs, pts, lo_index, lo_gamma, out, ws, fou
         out[3] += delta
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def read_scratch_size(P, n_disk, n_gap, K, S, run):
     """The length of :func:`_read_ring`'s float scratch."""
     KS = K * S
     return P + max(n_disk, n_gap) + n_gap + 5 * KS + (KS + run) + 4 * K + S
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _read_ring(
     img,
     mode,
@@ -457,7 +457,7 @@ def _read_ring(
     return True, code, roll, best_margin, roll_deg, disk_dn, bg
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _same_samples(e, f, r_max, tol_px):
     """Whether the ellipses ``e`` and ``f`` place every sample point within ``r_max`` disk radii of
     the centre less than ``tol_px`` apart: the centre's offset plus ``r_max`` times the largest
@@ -469,7 +469,7 @@ def _same_samples(e, f, r_max, tol_px):
     return np.hypot(f[0] - e[0], f[1] - e[1]) + r_max * sigma <= tol_px
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def read_rings_kernel(
     img,
     mode,

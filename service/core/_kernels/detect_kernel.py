@@ -32,7 +32,7 @@ NF = 27
 _FAST = {"reassoc", "contract", "arcp"}
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _fmin(a: float, b: float) -> float:  # np.fmin: NaN-ignoring
     if a != a:
         return b
@@ -41,7 +41,7 @@ def _fmin(a: float, b: float) -> float:  # np.fmin: NaN-ignoring
     return a if a < b else b
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _fmax(a: float, b: float) -> float:  # np.fmax: NaN-ignoring
     if a != a:
         return b
@@ -50,14 +50,14 @@ def _fmax(a: float, b: float) -> float:  # np.fmax: NaN-ignoring
     return a if a > b else b
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _maximum(a: float, b: float) -> float:  # np.maximum: NaN-propagating
     if a != a or a > b:
         return a
     return b
 
 
-@njit(cache=True, error_model="numpy", fastmath=_FAST)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
 def _rows(h, w, wi, sums):
     """Per row dv = a - h of the circle of radius h + 1/2: its half width ``w`` and the half
     width ``wi`` of the disk inside the rim (distance <= h - 1; -1 where the row misses it); the
@@ -93,7 +93,7 @@ def _rows(h, w, wi, sums):
         sums[6] += e8
 
 
-@njit(cache=True, error_model="numpy", fastmath=_FAST)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
 def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff):
     """Measure the blob in the circle of radius ``half + 1/2`` about each (cu, cv).
 
@@ -147,7 +147,7 @@ def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff):
     return out, n_sat, edge
 
 
-@njit(cache=True, error_model="numpy", fastmath=_FAST)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
 def _window(P, pv, ph, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, i):
     """One window: the values to measure are ``P[pv:pv + s, ph:ph + s]``, the image's (for the
     peak and saturation) ``img[v0:v0 + s, u0:u0 + s]``. Rows are taken one at a time: a 1-D row of
@@ -357,7 +357,7 @@ def _window(P, pv, ph, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, 
     return ns, crossed
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _nan_to_num(x: float) -> float:
     if x != x:
         return 0.0
@@ -368,7 +368,7 @@ def _nan_to_num(x: float) -> float:
     return x
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def assess_kernel(out, n_sat, edge, usable, contrast, limits, codes):
     """Reason (-1: accepted), sigma_px and fill of each window of :func:`measure_windows_kernel`'s
     ``out`` (see ``detect._assess`` for the statistics); ``contrast`` (n,) DN: each window's

@@ -20,7 +20,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def residuals_kernel(R, t, p, xy, W, c):
     """Whitened residuals (n, 2) px, camera-frame points (n, 3) mm, ``sum(r**2)`` and the number of
     points in front (Z > 0), for ``p_c = R^T (p - t)`` and ideal ``xy`` (n, 2) mm."""
@@ -45,7 +45,7 @@ def residuals_kernel(R, t, p, xy, W, c):
     return r, pc, ss, n_front
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def design_kernel(R, W, c, pc):
     """Jacobian (n, 2, 6) of the whitened computed coordinates wrt [dθ, dt], field axes (the
     formulas are in :mod:`service.core.pose.resection`)."""
@@ -70,7 +70,7 @@ def design_kernel(R, W, c, pc):
     return A
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def normal_kernel(A, r):
     """Normal matrix ``A^T A`` (6, 6) and right-hand side ``A^T r`` (6,) over all points."""
     N = np.zeros((6, 6))
@@ -89,7 +89,7 @@ def normal_kernel(A, r):
     return N, g
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def point_statistics_kernel(v, A, Qxx, sign):
     """Each point's ``v_i^T Q_i^-1 v_i`` and ``det Q_i`` (n,), ``Q_i = I + sign A_i Qxx A_i^T``."""
     n = v.shape[0]
@@ -114,7 +114,7 @@ def point_statistics_kernel(v, A, Qxx, sign):
     return T2, det
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _sensor_from_ideal_point(tx, ty, K1, K2, K3, P1, P2, B1, B2, max_iter):
     """Newton inverse of the Brown/Fraser correction at one ideal point (mm, relative to the
     principal point): the measured point, until the step is below 1e-12 mm. NaN where there is
@@ -147,7 +147,7 @@ def _sensor_from_ideal_point(tx, ty, K1, K2, K3, P1, P2, B1, B2, max_iter):
     return xb, yb
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def sensor_from_ideal_kernel(target, K1, K2, K3, P1, P2, B1, B2, max_iter):
     """Newton inverse of the Brown/Fraser correction per point, relative to the principal point:
     (n, 2) mm, each point until its step is below 1e-12 mm (see ``BrownFraser.sensor_from_ideal``)."""
@@ -160,7 +160,7 @@ def sensor_from_ideal_kernel(target, K1, K2, K3, P1, P2, B1, B2, max_iter):
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def whitened_ideal_kernel(uv, cu, cv, pixel_u, pixel_v, x0, y0, K1, K2, K3, P1, P2, B1, B2):
     """Ideal coordinates (n, 2) mm of pixels ``uv`` (n, 2) and the inverses (n, 2, 2) px/mm of
     d(ideal)/d(pixel) there, in one pass: ``BrownFraser.ideal_from_pixel`` and the inverse of
@@ -184,7 +184,7 @@ def whitened_ideal_kernel(uv, cu, cv, pixel_u, pixel_v, x0, y0, K1, K2, K3, P1, 
     return xy, W
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def scatter_kernel(p, xy):
     """Scatter matrices about the centroids: (3, 3) of field points ``p`` (n, 3) and (2, 2) of
     image points ``xy`` (n, 2) (``resection_closed_form.check_geometry``'s input)."""
@@ -214,7 +214,7 @@ def scatter_kernel(p, xy):
     return S, Sx
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def is_rigid_kernel(T, tol):
     """Whether ``T`` (4, 4) is finite, its rotation orthonormal and proper, and its last row
     (0, 0, 0, 1), each within ``tol``."""
@@ -235,7 +235,7 @@ def is_rigid_kernel(T, tol):
     return det > 0 and abs(T[3, 0]) <= tol and abs(T[3, 1]) <= tol and abs(T[3, 2]) <= tol and abs(T[3, 3] - 1) <= tol
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def project_kernel(R, t, xyz, c, K1, K2, K3, P1, P2, B1, B2, x0, y0, pixel_u, pixel_v, width, height, margin):
     """Pixels (n, 2) px of field points ``xyz`` (n, 3) mm seen from ``T_field_camera`` = (R, t), as
     ``BrownFraser.pixel_from_camera`` computes them; their depth Z (n,) mm; and which are in front
@@ -262,7 +262,7 @@ def project_kernel(R, t, xyz, c, K1, K2, K3, P1, P2, B1, B2, x0, y0, pixel_u, pi
     return uv, depth, inside
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def eccentricity_kernel(ex, ey, p_field, R, t, c, radius, W):
     """Offset (n, 2) px of each disk image's centre from the image of the disk's centre.
 
@@ -309,7 +309,7 @@ def eccentricity_kernel(ex, ey, p_field, R, t, c, radius, W):
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _solve6(N, g):
     """``N x = g`` by Gaussian elimination with partial pivoting (LAPACK's gesv, unblocked);
     NaN where N is singular."""
@@ -341,7 +341,7 @@ def _solve6(N, g):
     return x
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def rotation_from_rotvec_kernel(w):
     """Rodrigues' formula (3, 3)."""
     theta = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
@@ -352,7 +352,7 @@ def rotation_from_rotvec_kernel(w):
     return np.eye(3) + (np.sin(theta) / theta) * K + ((1 - np.cos(theta)) / theta**2) * K2
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def rotvec_from_matrix_kernel(R):
     """Rotation vector (3,) rad of a rotation matrix, through its unit quaternion (Shepperd's
     method, stable at any angle)."""
@@ -379,7 +379,7 @@ def rotvec_from_matrix_kernel(R):
     return (2.0 * np.arctan2(n, q[3]) / n) * q[:3]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def predict_kernel(T0, T1, s):
     """``T1`` moved on by ``s`` times the motion from ``T0`` to ``T1`` (4, 4): linear in position,
     along the geodesic in rotation (``tracking.predict_pose``)."""
@@ -396,7 +396,7 @@ def predict_kernel(T0, T1, s):
 CONVERGED, MAX_ITER, BEHIND, SINGULAR, NO_STEP = 0, 1, 2, 3, 4
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def adjust_kernel(R, t, p, xy, W, c, scale_mm, max_iter):
     """Levenberg-Marquardt on the collinearity equations (see :mod:`service.core.pose.resection`).
 
@@ -452,7 +452,7 @@ def adjust_kernel(R, t, p, xy, W, c, scale_mm, max_iter):
     return R, t, max_iter, r, pc, A3, normal_kernel(A3, r)[0], ss0, MAX_ITER
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def correction_kernel(xb, yb, K1, K2, K3, P1, P2, B1, B2, jacobian):
     """The Brown/Fraser correction (dx, dy) (n,) mm at (xb, yb) (n,) mm relative to the principal
     point, and with ``jacobian`` also d(x, y)/d(x_bar, y_bar) (n, 2, 2) (see ``BrownFraser``)."""
@@ -474,7 +474,7 @@ def correction_kernel(xb, yb, K1, K2, K3, P1, P2, B1, B2, jacobian):
     return dx, dy, J
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def match_kernel(uv_pred, blob_uv, free, tol):
     """Per prediction (n, 2) px: the one free blob (``blob_uv`` (m, 2), ``free`` (m,)) closer than
     ``tol`` px, or -1 when there is none or more than one; then -1 also where two predictions

@@ -29,7 +29,7 @@ IQR_TO_SIGMA = 0.7413011092528009
 CLIP_SIGMA = 3.5  # the second round keeps the residuals within this many first-round sigmas
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _cdf(cum, hist, x, half):
     """Samples below ``x`` (bin units from the centre), bins uniform over [k - 1/2, k + 1/2)."""
     t = x + half + 0.5
@@ -41,7 +41,7 @@ def _cdf(cum, hist, x, half):
     return cum[k] + (t - k) * hist[k]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _quantile(cum, hist, target, half):
     """The x whose _cdf is ``target`` (counts): the bin by bisection of ``cum``, then inside it."""
     k = np.searchsorted(cum, target) - 1  # cum[k] < target <= cum[k + 1]
@@ -50,7 +50,7 @@ def _quantile(cum, hist, target, half):
     return (k - half) - 0.5 + (inside / hist[k] if hist[k] > 0 else 0.0)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _iqr_sigma(hist, cum, half):
     """Clipped interquartile sigma (bins) of one tile's histogram (``cum[k]``: samples in bins < k).
 
@@ -72,7 +72,7 @@ def _iqr_sigma(hist, cum, half):
     return sigma
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def tile_noise_kernel(img, bg, step, tile, sub_v, shift, half):
     """Noise sigma (DN) of each ``tile`` x ``tile`` px tile of ``img`` (H, W) about the coarse
     background ``bg`` (hs, ws): one value per ``step`` (8) x ``step`` px cell, taken as constant over
@@ -122,7 +122,7 @@ def tile_noise_kernel(img, bg, step, tile, sub_v, shift, half):
     return sigma
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def box_peak_kernel(img, box, which):
     """Brightest pixel (DN) inside the inclusive box (u0, v0, u1, v1) of each contour ``which``."""
     out = np.empty(which.size)

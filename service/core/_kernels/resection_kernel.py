@@ -50,14 +50,14 @@ from service.core._kernels.geometry_kernels import (
 ) = range(9)
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _critical(m, alpha):
     """Critical values of chi^2(2) and of 2 F(2, m) at the false-alarm probability ``alpha``."""
     # P(chi^2(2) > x) = exp(-x/2); P(F(2, m) > x) = (1 + 2x/m)^(-m/2) and the statistic is 2F
     return -2.0 * np.log(alpha), m * (alpha ** (-2.0 / m) - 1.0) if m >= 1 else np.inf
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _score(T2, s2_post, sigma_px, max_sigma_px, critical_value, chi2_crit, f_crit, floor_px):
     """One point's ``T2 / sigma^2`` over its critical value (``resection.resect``'s data snooping;
     NaN ``sigma_px`` or ``critical_value``: not given)."""
@@ -71,7 +71,7 @@ def _score(T2, s2_post, sigma_px, max_sigma_px, critical_value, chi2_crit, f_cri
     return T2 / (s2 * (chi2_crit if capped else f_crit))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def resect_kernel(T, p, xy, W, c, max_iter, reject, sigma_px, max_sigma_px, critical_value, alpha, floor_px):
     """Adjust the start pose ``T`` (4, 4) (``T_field_camera``) over field points ``p`` (n, 3) mm,
     ideal coordinates ``xy`` (n, 2) mm and whitening ``W`` (n, 2, 2) px/mm, with data snooping
@@ -233,7 +233,7 @@ def resect_kernel(T, p, xy, W, c, max_iter, reject, sigma_px, max_sigma_px, crit
 # -- the closed form's planar case and the input's spread (resection_closed_form) ----------------
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def spread_kernel(p, xy):
     """Spread (3,) of field points ``p`` (n, 3) mm along their principal axes, decreasing, and
     of image points ``xy`` (n, 2) mm (2,) (``resection_closed_form.check_geometry``)."""
@@ -250,7 +250,7 @@ def spread_kernel(p, xy):
     return s, s_img
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _normalizer(points):
     """Hartley's similarity (d+1, d+1): centroid to the origin, RMS distance sqrt(d)."""
     n, d = points.shape
@@ -271,7 +271,7 @@ def _normalizer(points):
     return N
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def centre_planar_kernel(p, n_img):
     """Projection centre (3,) mm of a planar field ``p`` (n, 3) mm seen at normalized image points
     ``n_img`` (n, 2) from the plane-to-plane transformation, and whether that was unique
@@ -347,7 +347,7 @@ def centre_planar_kernel(p, n_img):
     return C, True
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def rotation_from_centre_kernel(p, xy, c, C):
     """Kraus: R_field_camera (3, 3) aligning the image rays of ``xy`` (n, 2) mm with the field rays
     from the centre ``C`` (3,) mm to ``p`` (n, 3) mm, over all points (orthogonal Procrustes)."""

@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def window_half_size_kernel(radius_c, coded, rows, depth, pixel_mm, allowance_px):
     """Half window (n,) px per target ``rows`` (n,) of the field at ``depth`` (n,) mm: the disk's image
     radius ``radius_c / max(depth, 1) / pixel_mm`` (``radius_c``: radius mm times c mm, per field row),
@@ -31,7 +31,7 @@ def window_half_size_kernel(radius_c, coded, rows, depth, pixel_mm, allowance_px
     return half
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def gather_found_kernel(found, blob_uv, rows, uv_pred):
     """The field rows (k,) and measured pixels (k, 2) px of the targets whose window found a blob
     (``found`` (n,) >= 0, index into ``blob_uv`` (m, 2) px), and the largest squared distance px^2
