@@ -57,6 +57,10 @@ def test_iso9283_report_gives_the_barycentre_offset_and_spread(tmp_path, capsys)
     assert 0.0 < report["poses"]["P1"]["RP_l_mm"] < 0.1 and report["poses"]["P1"]["n"] == 30
     assert json.loads((tmp_path / "out" / "report.json").read_text()) == report
     assert "| P2 |" in (tmp_path / "out" / "report.md").read_text()
+    # the plotted positions are in the JSON: offsets from the command, µm, one per cycle
+    assert np.array(report["attained"]["P2"]["offset_um"]).mean(axis=0) == pytest.approx([0, 0, 1200], abs=1e-3)
+    for name in ("iso9283.svg", "iso9283.png", "report.html"):
+        assert (tmp_path / "out" / name).stat().st_size > 1000
 
 
 def test_table1_report_gives_each_positions_deviation_between_its_two_visits(tmp_path, capsys):
@@ -94,9 +98,22 @@ def test_circle_report_gives_the_iso_230_4_figures_of_an_elliptic_path(tmp_path,
     csv_path = _write(tmp_path / "circle.csv", ["t_s", "direction", "x_mm", "y_mm", "z_mm"], rows)
     args = ["report", "circle", "--poses", str(csv_path), "--radius-mm", str(R), "--centre-mm", "1200,0,800"]
     assert cli.main([*args, "-o", str(tmp_path / "out")]) == 0
-    report = json.loads(capsys.readouterr().out)
+    out, err = capsys.readouterr()
+    report = json.loads(out)
     assert report["G_bidirectional_mm"] == pytest.approx(2 * e, rel=1e-3)
     assert report["F_max_mm"] == pytest.approx(e, rel=1e-3) and report["F_min_mm"] == pytest.approx(-e, rel=1e-3)
     assert report["H_mm"] == pytest.approx(0.0, abs=1e-6)  # both directions trace the same ellipse
     assert "G_bidirectional_mm" in (tmp_path / "out" / "report.md").read_text()
+    # the files are listed as written; the page embeds the polar plot and shows G
+    written = {Path(line.rsplit("wrote ", 1)[1]).name for line in err.splitlines() if "wrote" in line}
+    assert written == {"report.json", "report.md", "circle.svg", "circle.png", "report.html"}
+    page = (tmp_path / "out" / "report.html").read_text()
+    assert (tmp_path / "out" / "circle.svg").read_text().split("<svg", 1)[1] in page
+    assert f">{report['G_bidirectional_mm']:.4f}<" in page
+    # the profile the plot is drawn from: an ellipse's deviation is e cos 2θ, its envelopes ±e
+    cw = report["profile"]["cw"]
+    th = np.radians(cw["theta_deg"])
+    assert np.array(cw["radial_deviation_mm"]) == pytest.approx(e * np.cos(2 * th), abs=1e-4)
+    assert cw["envelope_outer_mm"] - cw["envelope_inner_mm"] == pytest.approx(report["G_cw_mm"], abs=2e-6)
+    assert "robot_path" not in report  # no x_cmd_mm columns
     assert cli.main([*args[:-2], "--centre-mm", "1,2", "-o", str(tmp_path / "o2")]) == 2

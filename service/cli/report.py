@@ -1,6 +1,7 @@
 """``posecell report circle|iso9283|table1``: the robot's accuracy from recorded poses (DESIGN section 5).
 
-One JSON object on stdout (the figures), and ``report.json`` + ``report.md`` in ``-o DIR``; the
+One JSON object on stdout (the figures), and ``report.json``, ``report.md``, the plots (SVG and PNG) and
+``report.html`` in ``-o DIR``; the
 CSV formats and the analyses are in :mod:`service.workflows.reports` and :mod:`service.core.accuracy`.
 """
 
@@ -42,7 +43,13 @@ def add_parser(subparsers: Subparsers) -> None:
     )
     for p, kind in ((circle, "circle"), (iso, "iso9283"), (t1, "table1")):
         p.add_argument("--poses", required=True, type=Path, help="the recorded poses (CSV)")
-        p.add_argument("-o", "--out", required=True, type=Path, help="folder for report.json and report.md")
+        p.add_argument(
+            "-o",
+            "--out",
+            required=True,
+            type=Path,
+            help="folder for report.json, report.md, the figures (SVG, PNG) and report.html",
+        )
         p.set_defaults(func=run, kind=kind)
 
 

@@ -1,8 +1,12 @@
-"""The robot's accuracy reports from recorded poses (``posecell report …``): CSV in, JSON and a table out.
+"""The robot's accuracy reports from recorded poses (``posecell report …``): CSV in; JSON, a table,
+figures and a page out.
 
 The analyses are the core's (:mod:`service.core.accuracy`); here only the files: reading the
 CSV of DESIGN section 5 by its header (columns in any order, extra columns ignored, a missing
-one named), and writing ``report.json`` and ``report.md`` into the output folder.
+one named), and writing ``report.json``, ``report.md``, the figures
+(:mod:`service.workflows.report_figures`) and ``report.html`` (:mod:`service.workflows.report_html`)
+into the output folder. The JSON carries what the figures are drawn from (the circle's
+``profile``, the poses' ``attained`` offsets), so the page can be rendered again from it alone.
 """
 
 from __future__ import annotations
@@ -15,11 +19,14 @@ from typing import Any
 
 import numpy as np
 
-from service.core.accuracy.circle import circle_result
-from service.core.accuracy.iso9283 import iso9283_dict, series_from_table
+from service.core.accuracy.circle import circle_profile, circle_result
+from service.core.accuracy.iso9283 import attained_offsets, iso9283_dict, series_from_table
 from service.core.accuracy.table1 import table1
 from service.core.geometry.frames import R_from_kuka_abc_deg, make_T
+from service.core.results import SolveError
 from service.store.formats import FormatError
+from service.workflows.report_figures import figures
+from service.workflows.report_html import render_html
 
 ISO9283_COLUMNS = ("pose", "cycle", "x_cmd_mm", "y_cmd_mm", "z_cmd_mm", "a_cmd_deg", "b_cmd_deg", "c_cmd_deg")
 ATTAINED = ("x_mm", "y_mm", "z_mm", "a_deg", "b_deg", "c_deg")
@@ -62,7 +69,7 @@ def iso9283_report(path: Path) -> dict[str, Any]:
         _numbers(t, ATTAINED, path),
         t.get("direction"),
     )
-    return iso9283_dict(series)
+    return iso9283_dict(series) | {"attained": attained_offsets(series)}
 
 
 CIRCLE_COLUMNS = ("direction", "x_mm", "y_mm", "z_mm")
@@ -90,7 +97,18 @@ def circle_report(path: Path, radius_mm: float, centre_mm: Sequence[float] | Non
     p_robot = _numbers(t, cmd, path) if all(c in t for c in cmd) else None
     directions = [d.strip().lower() for d in t["direction"]]
     result = circle_result(p, directions, radius_mm, centre_mm=centre_mm, R=R, p_robot_mm=p_robot)
-    return result.to_dict()
+    report = result.to_dict() | {"profile": circle_profile(result)}
+    if p_robot is not None:
+        # the robot's own belief of its path, analysed as the camera's is (about its own LSC): the
+        # seed paper's Figure 7 sets the two side by side; a robot path that fits no circle is a note
+        try:
+            robot = circle_result(p_robot, directions, radius_mm, centre_mm=centre_mm, minimum_zone=False)
+        except SolveError as e:
+            report["notes"].append(f"the robot's reported path (x_cmd_mm …) gives no circle: {e}")
+        else:
+            robot_figures = {k: v for k, v in robot.to_dict().items() if k in (*CIRCLE_FIGURES, "notes")}
+            report["robot_path"] = robot_figures | {"profile": circle_profile(robot)}
+    return report
 
 
 def table1_report(path: Path) -> dict[str, Any]:
@@ -113,7 +131,8 @@ def _markdown(title: str, rows: list[dict[str, Any]], columns: Sequence[str]) ->
 
 
 def write_report(out_dir: Path, kind: str, report: dict[str, Any]) -> list[Path]:
-    """``report.json`` and ``report.md`` (a table) in ``out_dir``; the paths written."""
+    """``report.json``, ``report.md`` (a table), the figures (``circle.svg``, ``circle.png`` …) and
+    ``report.html`` (the page, figures inline) in ``out_dir``; the paths written."""
     out_dir.mkdir(parents=True, exist_ok=True)
     json_path, md_path = out_dir / "report.json", out_dir / "report.md"
     json_path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
@@ -129,4 +148,11 @@ def write_report(out_dir: Path, kind: str, report: dict[str, Any]) -> list[Path]
         rows = report["rows"]
         md = _markdown("Forward and reverse visits (the paper's Table 1)", rows, list(rows[0]) if rows else [])
     md_path.write_text(md, encoding="utf-8")
-    return [json_path, md_path]
+    written = [json_path, md_path]
+    drawn = figures(kind, report)
+    for name, data in drawn.items():
+        (out_dir / name).write_bytes(data)
+        written.append(out_dir / name)
+    html_path = out_dir / "report.html"
+    html_path.write_text(render_html(kind, report, svgs=drawn), encoding="utf-8")
+    return [*written, html_path]

@@ -394,3 +394,87 @@ def _signed_turn(q: Array, c: Array) -> float:
     """The angle rad the points (n, 2) turn about c, in their order (positive: counter-clockwise)."""
     a = np.unwrap(np.arctan2(q[:, 1] - c[1], q[:, 0] - c[0]))
     return float(a[-1] - a[0]) if len(a) > 1 else 0.0
+
+
+def circle_profile(result: CircleResult) -> dict[str, Any]:
+    """What the polar plot of the test needs (ISO 230-4's plot, the seed paper's Figure 7), as JSON:
+    :func:`radial_profile` of the result's own per-point arrays, centres and plane."""
+    return radial_profile(
+        result.theta_rad,
+        result.radial_deviation_mm,
+        result.is_cw,
+        result.radius_mm,
+        centre_mm=result.centre_mm,
+        centre_cw_mm=result.centre_cw_mm,
+        centre_ccw_mm=result.centre_ccw_mm,
+        plane_normal=result.plane_normal,
+        theta_zero_axis=result.theta_zero_axis,
+        radius_lsc_mm=result.radius_lsc_mm,
+    )
+
+
+def radial_profile(
+    theta_rad: ArrayLike,
+    radial_deviation_mm: ArrayLike,
+    is_cw: ArrayLike,
+    radius_mm: float,
+    *,
+    centre_mm: ArrayLike,
+    centre_cw_mm: ArrayLike | None,
+    centre_ccw_mm: ArrayLike | None,
+    plane_normal: ArrayLike,
+    theta_zero_axis: ArrayLike,
+    radius_lsc_mm: float,
+) -> dict[str, Any]:
+    """The polar plot's data from a :class:`CircleResult`'s fields (or their JSON: a report that
+    kept ``to_dict(points=True)`` can be plotted after the fact), as JSON.
+
+    Per direction present (``"cw"``, ``"ccw"``), in time order, each point's ``theta_deg`` and
+    ``radial_deviation_mm`` (``r_i - R``) about the common centre in the plane, and the G
+    envelope: the two circles about that direction's LSC centre through its nearest and farthest
+    point, as ``envelope_inner_mm`` and ``envelope_outer_mm`` (their radii minus R: outer -
+    inner = G of that direction) and ``centre_offset_mm`` (2,), that centre minus the common one
+    along the plane's x (``theta_zero_axis``) and y (``plane_normal × x``). With both directions,
+    ``"bidirectional"`` holds the envelope of all points about the common centre (inner = F_min,
+    outer = F_max). Lengths in mm, rounded to 1 nm.
+
+    A point's radius about a direction's centre is exact, not the limaçon approximation: the
+    point is ``(R + dev) (cos θ, sin θ)`` from the common centre.
+    """
+    theta = np.asarray(theta_rad, dtype=np.float64)
+    dev = np.asarray(radial_deviation_mm, dtype=np.float64)
+    cw = np.asarray(is_cw, dtype=np.bool_)
+    if not theta.shape == dev.shape == cw.shape or theta.ndim != 1:
+        raise ValueError(f"theta, deviation and direction need one value per point, not {theta.shape}, {dev.shape}")
+    normal = np.asarray(plane_normal, dtype=np.float64)
+    x_axis = np.asarray(theta_zero_axis, dtype=np.float64)
+    c = np.asarray(centre_mm, dtype=np.float64)
+    axes = np.stack([x_axis, np.cross(normal, x_axis)])  # (2, 3): the plane's x and y
+    R = float(radius_mm)
+    q = (R + dev)[:, None] * np.column_stack([np.cos(theta), np.sin(theta)])  # (N, 2) about the common centre
+
+    def rounded(x: Any) -> Any:
+        a = np.round(np.asarray(x, dtype=np.float64), 6) + 0.0  # + 0.0: no -0.0
+        return a.tolist() if a.ndim else float(a)
+
+    def envelope(points: Array, offset: Array) -> dict[str, Any]:
+        r = np.hypot(points[:, 0] - offset[0], points[:, 1] - offset[1])
+        return {
+            "centre_offset_mm": rounded(offset),
+            "envelope_inner_mm": rounded(r.min() - R),
+            "envelope_outer_mm": rounded(r.max() - R),
+        }
+
+    out: dict[str, Any] = {"radius_mm": R, "radius_lsc_mm": rounded(radius_lsc_mm), "centre_mm": rounded(c)}
+    for k, m, c_k in (("cw", cw, centre_cw_mm), ("ccw", ~cw, centre_ccw_mm)):
+        if c_k is None or not m.any():
+            continue
+        offset = axes @ (np.asarray(c_k, dtype=np.float64) - c)
+        out[k] = {
+            "theta_deg": rounded(np.degrees(theta[m])),
+            "radial_deviation_mm": rounded(dev[m]),
+            **envelope(q[m], offset),
+        }
+    if "cw" in out and "ccw" in out:
+        out["bidirectional"] = envelope(q, np.zeros(2))
+    return out

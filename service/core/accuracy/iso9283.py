@@ -326,6 +326,21 @@ def iso9283_dict(
     return iso9283_result(series, distances).to_dict()
 
 
+def attained_offsets(series: Mapping[str, PoseSeries] | Iterable[PoseSeries]) -> dict[str, dict[str, Any]]:
+    """Per pose (by name) its command ``xyz_cmd_mm`` (3,) and each cycle's attained position minus
+    it, ``offset_um`` (n, 3) µm rounded to 1 nm, with the ``cycles``, as JSON: what the report's
+    figure plots, kept beside the figures so a stored report can be drawn again from its JSON."""
+    items = list(series.values()) if isinstance(series, Mapping) else list(series)
+    return {
+        s.name: {
+            "xyz_cmd_mm": [round(float(v), 6) for v in s.xyz_cmd_mm],
+            "cycles": list(s.cycles),
+            "offset_um": (np.round(1e3 * (s.xyz_mm - s.xyz_cmd_mm), 3) + 0.0).tolist(),
+        }
+        for s in items
+    }
+
+
 @dataclass(frozen=True, eq=False)
 class Iso9283Cube:
     """ISO 9283's test cube: ``corners`` C1 … C8 and ``poses`` P1 … P5, each (3,) mm in base.
