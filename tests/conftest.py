@@ -18,6 +18,7 @@ SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SLOW_MODULES = (
     "tests/e2e/",
     "tests/api/test_api.py",
+    "tests/api/test_accuracy_tests.py",
     "tests/api/test_handeye_workflow.py",
     "tests/api/test_http_hardening.py",
     "tests/api/test_reliability.py",

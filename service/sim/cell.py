@@ -234,6 +234,21 @@ class SimCell:
         self._moves = (*[m for m in self._moves if m[0] < t_start_s], (float(t_start_s), traj))
         return float(traj.duration_s)
 
+    def command_trajectory(self, trajectory: JointTrajectory, t_start_s: float) -> float:
+        """Play ``trajectory`` (planned by the caller, e.g. the accuracy tests' programs) from ``t_start_s``
+        and hold its end; returns its duration (s). Moves commanded for later are dropped, as by
+        :meth:`command_move`. The caller makes it start where the arm is, or the arm jumps."""
+        self._moves = (*[m for m in self._moves if m[0] < t_start_s], (float(t_start_s), trajectory))
+        return float(trajectory.duration_s)
+
+    def circle_centre(self) -> Array:
+        """``T_base_centre`` (4, 4) of the circle program: the field's axes, above the plate centre."""
+        return self._circle_centre()
+
+    def hold_pose(self) -> Array:
+        """``T_base_flange`` (4, 4) of the hold program: over the plate centre, the camera aimed at it."""
+        return self._hold_pose()
+
     def T_base_flange_true(self, t_s: ArrayLike) -> Array:
         """Where the flange really is: ``true.fk(q)``, (4, 4) or (M, 4, 4)."""
         return self.true.fk(self.q_at(t_s))

@@ -60,8 +60,32 @@ def _migrate_to_v1(conn: sqlite3.Connection) -> None:
     conn.execute("CREATE INDEX events_t_wall ON events (t_wall)")
 
 
+def _migrate_to_v2(conn: sqlite3.Connection) -> None:
+    # the robot's accuracy tests (service.store.tests_store): kept until deleted, not purged by retention
+    conn.execute("""CREATE TABLE tests (
+        id INTEGER PRIMARY KEY AUTOINCREMENT,
+        kind TEXT NOT NULL,         -- circle | iso9283 | table1
+        mode TEXT NOT NULL,         -- program | record
+        params TEXT NOT NULL,       -- JSON, as validated
+        status TEXT NOT NULL,       -- queued | running | done | failed | cancelled | interrupted
+        progress REAL NOT NULL DEFAULT 0, progress_message TEXT,
+        created TEXT NOT NULL, finished TEXT,  -- ISO 8601 UTC
+        error TEXT, n_samples INTEGER NOT NULL DEFAULT 0,
+        report TEXT,                -- JSON: what `posecell report` writes as report.json
+        details TEXT                -- JSON: conditions, and in the simulation the truth's analysis
+    )""")
+    conn.execute("""CREATE TABLE test_samples (
+        id INTEGER PRIMARY KEY AUTOINCREMENT,
+        test_id INTEGER NOT NULL REFERENCES tests (id) ON DELETE CASCADE,
+        t_exposure_unix_ns INTEGER NOT NULL,
+        label TEXT, visit INTEGER, stop INTEGER,  -- direction / pose / position; lap / cycle / visit; stop number
+        sample TEXT NOT NULL        -- JSON: measured, reported (and true, commanded) flange poses, σ
+    )""")
+    conn.execute("CREATE INDEX test_samples_test ON test_samples (test_id, id)")
+
+
 # MIGRATIONS[n] brings a database from user_version n to n + 1; append, never edit.
-MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migrate_to_v1,)
+MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migrate_to_v1, _migrate_to_v2)
 SCHEMA_VERSION = len(MIGRATIONS)
 
 

@@ -1,0 +1,101 @@
+"""The dashboard's accuracy-tests panel in a real headless Chromium against the simulated cell.
+
+A user picks a test, types its parameters, starts it (refused without the API token, with the
+service's reason), watches its progress, and reads the finished test's report in the page.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+
+import pytest
+
+from service.settings import load_settings
+from tests.api.conftest import LiveServer, free_port, run_server
+from tests.e2e.test_dashboard import Page, _chromium
+
+pytestmark = pytest.mark.skipif(_chromium() is None, reason="Chromium is not installed (Debian package 'chromium')")
+
+TOKEN = "tests-panel-token"
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    settings = load_settings(
+        None,
+        state_dir=str(tmp_path_factory.mktemp("tests-panel-state")),
+        server__port=free_port(),
+        server__token=TOKEN,
+        cameras=[{"frame_rate_hz": 15.0}],
+    )
+    servers = run_server(settings)
+    server = next(servers)
+    try:
+        server.wait_for(
+            lambda h: h["status"] == "ok" and h["processing"]["ok"] >= 3, timeout_s=180.0, what="a running cell"
+        )
+        yield server
+    finally:
+        servers.close()
+
+
+@pytest.fixture(scope="module")
+def page(cell: LiveServer, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Page]:
+    tmp = tmp_path_factory.mktemp("chromium-tests")
+    p = Page(str(_chromium()), tmp / "profile", tmp / "chromium.log")
+    try:
+        p.goto(f"{cell.url}/")
+        p.wait("document.querySelector('#tests-table tbody').textContent.includes('no tests yet')", "the empty list")
+        yield p
+    finally:
+        p.close()
+
+
+def _choose(page: Page, selector: str, value: str) -> None:
+    page.js(
+        f"(() => {{ const e = document.querySelector({json.dumps(selector)}); e.value = {json.dumps(value)};"
+        " e.dispatchEvent(new Event('change')); })()"
+    )
+
+
+def test_a_table1_test_runs_from_the_panel_with_progress_and_its_report(page: Page, cell: LiveServer) -> None:
+    _choose(page, "#test-kind", "table1")
+    assert json.loads(page.js("document.getElementById('test-params').value")) == {"positions": 6}
+    page.type("#test-params", '{"positions": 2, "dwell_s": 0.1}')
+    page.type("#token", "")
+    page.click("#test-start")
+    page.wait("document.getElementById('test-failure').dataset.reason === 'unauthorized'", "the refusal")
+    assert "Bearer" in page.text("#test-failure")  # the service's own sentence
+
+    page.type("#token", TOKEN)
+    page.click("#test-start")
+    page.wait("document.getElementById('test-failure').hidden", "the refusal to clear")
+    page.wait("document.getElementById('test-active').dataset.state === 'running'", "the test to run", 10)
+    # progress is visible while it runs: the bar moves off 0 and the sentence names the stop
+    page.wait("document.getElementById('test-progress').value > 0", "progress above 0", 60)
+    shown = page.text("#test-progress-text")
+    assert "stop" in shown and "samples" in shown, shown
+    page.wait("document.getElementById('test-active').dataset.state === 'done'", "the test to finish", 120)
+
+    test_id = int(page.js("document.getElementById('test-active').dataset.id"))
+    with cell.client() as c:
+        t = c.get(f"/tests/{test_id}").json()
+        report = c.get(f"/tests/{test_id}/report.json").json()
+    assert t["status"] == "done" and t["kind"] == "table1" and t["params"]["positions"] == 2
+    row = page.js(f"""(() => {{ const r = document.querySelector('#tests-table tr[data-id="{test_id}"]');
+        return [r.dataset.status, [...r.querySelectorAll('a')].map(a => a.textContent)]; }})()""")
+    assert row == ["done", ["show", "JSON", "CSV"]]
+    # the finished test's report is shown in the page, with its table of the two positions
+    page.wait(
+        "document.getElementById('test-report').contentDocument?.querySelectorAll('table').length > 0",
+        "the report in its frame",
+        15,
+    )
+    frame_text = page.js("document.getElementById('test-report').contentDocument.body.textContent")
+    assert all(r["position"] in frame_text for r in report["rows"])
+    assert len(report["rows"]) == 2
+    page.js("0")
+    assert page.exceptions == []
+    urls = page.js("performance.getEntriesByType('resource').map(e => e.name)")
+    assert [u for u in urls if not u.startswith((cell.url + "/", "blob:", "data:"))] == []
