@@ -32,7 +32,7 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.staticfiles import StaticFiles
 
-from api import docs, errors
+from api import docs, errors, plant
 from api.middleware import EdgeGuard, EdgeRules
 from api.routes import calibration, camera_calibration, config, data, handeye, health, measure, sim, tests
 from api.security import resolve_token
@@ -80,6 +80,7 @@ def create_app(settings: Settings) -> FastAPI:
             await asyncio.to_thread(worker.start)
             stack.push_async_callback(asyncio.to_thread, worker.stop)
             stack.callback(worker.subscribe(hub.publish_threadsafe))
+            await plant.start(app, stack, settings, worker, hub)  # MQTT and OPC UA, if configured
             # what start-up built (modules, FastAPI's routes, numba's dispatchers: ~10^6 objects) never
             # dies: out of the collector's sight, a full collection no longer stalls every thread for
             # 0.1-0.2 s (the p99 of exposure -> WebSocket)

@@ -204,6 +204,68 @@ class SimConfig(_Section):
     preload_handeye: bool = True
 
 
+_MQTT_TOPIC_WILDCARDS = ("+", "#")
+
+
+class MqttConfig(_Section):
+    """Publishing into the plant's MQTT broker (``service/plant/mqtt.py``); empty ``broker``: off."""
+
+    broker: str = Field(
+        "",
+        pattern=r"^$|^mqtts?://[^/:\s]+(:\d{1,5})?/?$",
+        description='broker URL, "mqtt://host:port" or "mqtts://host:port" (TLS); empty: no publishing',
+    )
+    topic_prefix: str = Field(
+        "posecell", min_length=1, max_length=200, description="topics: <prefix>/<camera>/pose, <prefix>/health, ..."
+    )
+    client_id: str = Field("", max_length=100, description="MQTT client id; empty: posecell-<host>-<pid>-<n>")
+    username: str = ""  # empty: connect without credentials
+    password: str = ""
+    pose_rate_hz: float = Field(
+        10.0, gt=0, le=200, description="pose messages per camera, Hz, (0, 200]: the newest result each period"
+    )
+    health_interval_s: float = Field(
+        5.0, ge=0.5, le=3600, description="retained health document period (and on change), s, [0.5, 3600]"
+    )
+    keepalive_s: int = Field(
+        10, ge=2, le=3600, description="MQTT keep-alive, s, [2, 3600]: the broker sends the will after 1.5x this"
+    )
+    reconnect_min_s: float = Field(0.5, gt=0, le=60, description="first reconnection delay, s, (0, 60]")
+    reconnect_max_s: float = Field(
+        30.0, gt=0, le=3600, description="longest reconnection delay (doubling back-off), s, (0, 3600]"
+    )
+    queue_size: int = Field(
+        100, ge=1, le=100_000, description="messages the client may hold while the broker is slow, [1, 100 000]"
+    )
+
+    @field_validator("topic_prefix")
+    @classmethod
+    def _plain_topic(cls, v: str) -> str:
+        if any(c in v for c in _MQTT_TOPIC_WILDCARDS) or v.startswith("/") or v.endswith("/"):
+            raise ValueError(f"topic_prefix {v!r} must not hold '+' or '#' nor start or end with '/'")
+        return v
+
+    @model_validator(mode="after")
+    def _backoff_order(self) -> MqttConfig:
+        if self.reconnect_max_s < self.reconnect_min_s:
+            raise ValueError("reconnect_max_s must not be smaller than reconnect_min_s")
+        return self
+
+
+class OpcUaConfig(_Section):
+    """The OPC UA server for the cell's PLC (``service/plant/opcua.py``); empty ``endpoint``: off."""
+
+    endpoint: str = Field(
+        "",
+        pattern=r"^$|^opc\.tcp://[^/:\s]+(:\d{1,5})?(/.*)?$",
+        description='endpoint URL, "opc.tcp://host:port"; empty: no OPC UA server',
+    )
+    update_rate_hz: float = Field(
+        10.0, gt=0, le=100, description="variable updates per camera, Hz, (0, 100]: the newest result each period"
+    )
+    namespace_uri: str = Field("urn:posecell", min_length=1, max_length=200, description="the server's own namespace")
+
+
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="POSECELL_", env_nested_delimiter="__", extra="forbid", frozen=True)
 
@@ -216,6 +278,8 @@ class Settings(BaseSettings):
     calibration: CalibrationConfig = CalibrationConfig()
     storage: StorageConfig = StorageConfig()
     sim: SimConfig = SimConfig()
+    mqtt: MqttConfig = MqttConfig()
+    opcua: OpcUaConfig = OpcUaConfig()
 
     @field_validator("cameras")
     @classmethod

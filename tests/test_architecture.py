@@ -89,6 +89,7 @@ LAYERS = {
     "settings": {"store", "drivers"},
     "runtime": {"core", "pipeline", "store", "settings", "sim", "drivers"},  # the running cell
     "workflows": {"core", "pipeline", "store", "settings", "sim"},  # the offline verbs' work
+    "plant": {"core", "settings", "runtime"},  # MQTT and OPC UA: the running cell's results into the plant
     "bench": {"core", "pipeline", "store", "settings", "sim", "workflows"},
     "cli": {"core", "pipeline", "store", "settings", "sim", "workflows", "bench", "runtime", "api"},
 }

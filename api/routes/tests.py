@@ -24,6 +24,7 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, Body, Depends, FastAPI, Query, Request
 from fastapi.responses import HTMLResponse, JSONResponse, Response
 
+from api import plant
 from api.errors import ApiError
 from api.security import Authorized
 from service.core.results import Reason
@@ -36,7 +37,7 @@ from service.store.tests_store import TestStore
 @contextlib.asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     store = TestStore(app.state.store.path)
-    app.state.tests = AccuracyTests(app.state.worker, store)
+    app.state.tests = AccuracyTests(app.state.worker, store, lambda message: plant.publish_test_report(app, message))
     try:
         yield
     finally:

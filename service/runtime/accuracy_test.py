@@ -25,6 +25,7 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -58,6 +59,8 @@ from service.store.measurements import StorageError
 from service.store.tests_store import INTERRUPTED, TestStore
 
 log = logging.getLogger(__name__)
+
+BULKY = ("points", "profile", "attained")  # a report's per-point arrays (for its figures)
 
 QUEUE_MAX = 2000  # results waiting for the test's thread (~2 min at 15 Hz): beyond, dropped and counted
 FLUSH_EVERY_S = 1.0  # samples are committed in batches this often
@@ -112,8 +115,12 @@ class _Run:
 class AccuracyTests:
     """Starts, runs, stops and lists the accuracy tests of ``worker``'s cell, stored in ``store``."""
 
-    def __init__(self, worker: Any, store: TestStore) -> None:
+    def __init__(
+        self, worker: Any, store: TestStore, on_finished: Callable[[dict[str, Any]], None] | None = None
+    ) -> None:
         self.worker, self.store = worker, store
+        # told of every test that ends (the plant's MQTT <prefix>/tests); called in the test's thread
+        self.on_finished = on_finished
         self._lock = threading.Lock()
         self._active: _Run | None = None
         n = store.mark_interrupted()
@@ -271,6 +278,14 @@ class AccuracyTests:
             "test_finished",
             f"accuracy test {run.id} ({run.kind}) {status}{f': {error}' if error else ''}",
         )
+        if self.on_finished is not None:
+            # the figures without the raw points (those are GET /tests/{id}/report.json's)
+            figures = {k: v for k, v in (report or {}).items() if k not in BULKY}
+            message = {"id": run.id, "kind": run.kind, "status": status, "error": error, "report": figures}
+            try:
+                self.on_finished({**message, "details": details})
+            except Exception:
+                log.exception("telling of the end of accuracy test %d", run.id)
 
     def _analyse(self, run: _Run) -> tuple[dict[str, Any], dict[str, Any]]:
         p = run.params
