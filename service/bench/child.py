@@ -7,10 +7,14 @@ import os
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
+
+import httpx
 
 TOKEN = "bench"
 
@@ -46,3 +50,23 @@ def serve_child(state_dir: Path, config: Path | None = None) -> Iterator[Served]
         except subprocess.TimeoutExpired:
             child.kill()
             child.wait(timeout=5)
+
+
+def health(address: str) -> dict[str, Any]:
+    """``GET /health`` of the service at ``address`` (host:port)."""
+    h: dict[str, Any] = httpx.get(f"http://{address}/health", timeout=5.0).json()
+    return h
+
+
+def wait_ready(address: str, timeout_s: float) -> None:
+    """Until the service at ``address`` has measured a pose (the numba kernels loaded, the cell running)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            h = health(address)
+            if h["processing"]["ok"] > 0 and h["status"] in ("ok", "degraded"):
+                return
+        except (httpx.TransportError, KeyError, ValueError):
+            pass
+        time.sleep(0.2)
+    raise TimeoutError(f"the service at {address} gave no pose within {timeout_s:.0f} s")

@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from service.bench.child import serve_child
+from service.bench.child import health, serve_child, wait_ready
 
 RATES_HZ = (100, 250, 500, 1000)
 CLIENTS = (1, 50)
@@ -130,27 +130,6 @@ def _clients(address: str, n_clients: int, seconds: float) -> list[tuple[int, in
             load.kill()
 
 
-def _health(address: str) -> dict[str, Any]:
-    import httpx
-
-    return httpx.get(f"http://{address}/health", timeout=5.0).json()
-
-
-def _wait_ready(address: str, timeout_s: float) -> None:
-    import httpx
-
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            h = _health(address)
-            if h["processing"]["ok"] > 0 and h["status"] in ("ok", "degraded"):
-                return
-        except (httpx.TransportError, KeyError, ValueError):
-            pass
-        time.sleep(0.2)
-    raise TimeoutError(f"the service at {address} gave no pose within {timeout_s:.0f} s")
-
-
 def _quantile(values: list[float], q: float) -> float:
     s = sorted(values)
     return s[min(len(s) - 1, int(q * len(s)))] if s else float("nan")
@@ -167,11 +146,11 @@ def measure(rate_hz: float, n_clients: int, seconds: float, warmup_s: float = 3.
 
 def _measure(address: str, pid: int, rate_hz: float, n_clients: int, seconds: float, warmup_s: float) -> dict[str, Any]:
     """One row measured on a running service (its address and process id)."""
-    _wait_ready(address, timeout_s=300.0)
+    wait_ready(address, timeout_s=300.0)
     time.sleep(warmup_s)  # the ROI tracking locked on, the clock fits settled
-    h0, cpu0 = _health(address), _cpu_s(pid)
+    h0, cpu0 = health(address), _cpu_s(pid)
     probe = _clients(address, n_clients, seconds)
-    h1, cpu1 = _health(address), _cpu_s(pid)
+    h1, cpu1 = health(address), _cpu_s(pid)
     if len(probe) < 2:
         raise RuntimeError(f"{rate_hz} Hz, {n_clients} clients: the probe received {len(probe)} results")
     latency_ms = [(t - e) * 1e-6 for t, e, _ in probe]
