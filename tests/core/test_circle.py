@@ -414,12 +414,13 @@ def test_labels_turning_the_same_way_are_refused():
         ({"radius_mm": 0.0}, "radius_mm"),
         ({"R": np.zeros((19, 3, 3))}, "R must have shape"),
         ({"centre_mm": [1.0, 2.0]}, "centre_mm"),
-        ({"p_mm": np.full((20, 3), np.nan)}, "non-finite"),
+        ({"p_mm": np.full((20, 3), np.nan)}, "NaN or infinity"),
     ],
 )
-def test_malformed_input_raises_value_error(kwargs, match):
+def test_malformed_input_is_bad_input_with_a_sentence(kwargs, match):
     t = np.arange(10) * 2 * np.pi / 10
     args = {"p_mm": points(np.r_[t, -t], R_NOM), "direction": ["ccw"] * 10 + ["cw"] * 10, "radius_mm": R_NOM}
     args.update(kwargs)
-    with pytest.raises(ValueError, match=match):
+    with pytest.raises(SolveError, match=match) as e:
         circle_result(**args)
+    assert e.value.reason is Reason.bad_input

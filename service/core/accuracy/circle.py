@@ -57,6 +57,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares, linprog
 
+from service.core.accuracy.inputs import bad_input, finite
 from service.core.geometry.so3 import R_mean, angle_between
 from service.core.results import Reason, SolveError
 
@@ -147,23 +148,14 @@ def _is_cw(direction: ArrayLike, n: int) -> NDArray[np.bool_]:
     """Labels (n,): True = cw, from booleans (True = cw) or the strings "cw" / "ccw" (any case)."""
     d = np.asarray(direction)
     if d.shape != (n,):
-        raise ValueError(f"direction must have one label per point, shape ({n},), not {d.shape}")
+        raise bad_input(f"direction must have one label per point, shape ({n},), not {d.shape}.")
     if d.dtype == np.bool_:
         return d.copy()
     s = np.char.lower(np.char.strip(d.astype(str)))
     bad = sorted(set(s.tolist()) - {"cw", "ccw"})
     if bad:
-        raise ValueError(f"direction labels must be 'cw' or 'ccw', not {bad[:3]}")
+        raise bad_input(f"direction labels must be 'cw' or 'ccw', not {bad[:3]}.")
     return np.asarray(s == "cw")
-
-
-def _finite(x: ArrayLike, shape: tuple[int, ...], name: str) -> Array:
-    a = np.asarray(x, dtype=np.float64)
-    if a.shape != shape:
-        raise ValueError(f"{name} must have shape {shape}, not {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} has non-finite values")
-    return a
 
 
 def _check_spread(q: Array, what: str) -> None:
@@ -295,15 +287,15 @@ def circle_result(
     """
     p = np.asarray(p_mm, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"p_mm must have shape (N, 3), not {p.shape}")
-    p = _finite(p, p.shape, "p_mm")
+        raise bad_input(f"p_mm must have shape (N, 3), not {p.shape}.")
+    p = finite(p, "p_mm", p.shape)
     N = len(p)
     if not (np.isfinite(radius_mm) and radius_mm > 0.0 and 0.0 < max_gap_deg < 360.0):
-        raise ValueError(f"radius_mm must be > 0 and max_gap_deg in (0, 360), not {radius_mm}, {max_gap_deg}")
+        raise bad_input(f"radius_mm must be > 0 and max_gap_deg in (0, 360), not {radius_mm}, {max_gap_deg}.")
     cw = _is_cw(direction, N)
-    c_nom = None if centre_mm is None else _finite(centre_mm, (3,), "centre_mm")
-    Rs = None if R is None else _finite(R, (N, 3, 3), "R")
-    p_rob = None if p_robot_mm is None else _finite(p_robot_mm, (N, 3), "p_robot_mm")
+    c_nom = None if centre_mm is None else finite(centre_mm, "centre_mm", (3,))
+    Rs = None if R is None else finite(R, "R", (N, 3, 3))
+    p_rob = None if p_robot_mm is None else finite(p_robot_mm, "p_robot_mm", (N, 3))
     n_cw, n_ccw = int(cw.sum()), int(N - cw.sum())
     for label, n in (("cw", n_cw), ("ccw", n_ccw)):
         if 0 < n < MIN_POINTS or N == 0:
@@ -445,7 +437,7 @@ def radial_profile(
     dev = np.asarray(radial_deviation_mm, dtype=np.float64)
     cw = np.asarray(is_cw, dtype=np.bool_)
     if not theta.shape == dev.shape == cw.shape or theta.ndim != 1:
-        raise ValueError(f"theta, deviation and direction need one value per point, not {theta.shape}, {dev.shape}")
+        raise bad_input(f"theta, deviation and direction need one value per point, not {theta.shape}, {dev.shape}.")
     normal = np.asarray(plane_normal, dtype=np.float64)
     x_axis = np.asarray(theta_zero_axis, dtype=np.float64)
     c = np.asarray(centre_mm, dtype=np.float64)

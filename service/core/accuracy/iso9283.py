@@ -44,8 +44,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.core.accuracy.inputs import bad_input, finite
 from service.core.geometry.frames import R_from_kuka_abc_deg, kuka_abc_deg_from_R
-from service.core.results import Reason, SolveError
 
 Array = NDArray[np.float64]
 
@@ -62,28 +62,17 @@ def wrap_deg(x: ArrayLike) -> Array:
     return np.asarray(180.0 - np.mod(180.0 - np.asarray(x, dtype=np.float64), 360.0))
 
 
-def _bad(message: str) -> SolveError:
-    return SolveError(Reason.bad_input, message)
-
-
-def _finite(x: ArrayLike, name: str) -> Array:
-    a = np.asarray(x, dtype=np.float64)
-    if not np.all(np.isfinite(a)):
-        raise _bad(f"{name} contains NaN or infinity.")
-    return a
-
-
 def _rotations(x: ArrayLike, name: str, n: int | None) -> Array:
     """(n, 3, 3) rotations from KUKA A, B, C deg (n, 3) or matrices (n, 3, 3); (3, 3) when n is None."""
-    a = _finite(x, name)
+    a = finite(x, name)
     abc_shape, R_shape = ((3,), (3, 3)) if n is None else ((n, 3), (n, 3, 3))
     if a.shape == abc_shape:
         return R_from_kuka_abc_deg(a)
     if a.shape != R_shape:
-        raise _bad(f"{name} must be KUKA A, B, C deg of shape {abc_shape} or matrices {R_shape}, got {a.shape}.")
+        raise bad_input(f"{name} must be KUKA A, B, C deg of shape {abc_shape} or matrices {R_shape}, got {a.shape}.")
     RtR = np.swapaxes(a, -1, -2) @ a
     if not np.allclose(RtR, np.eye(3), atol=1e-6) or np.any(np.linalg.det(a) <= 0):
-        raise _bad(f"{name} holds a matrix that is not a proper rotation.")
+        raise bad_input(f"{name} holds a matrix that is not a proper rotation.")
     return a
 
 
@@ -122,23 +111,23 @@ def pose_series(
     ``orientation_cmd`` is KUKA A, B, C deg (3,) or a matrix (3, 3); ``orientation`` is (n, 3) deg
     or (n, 3, 3); ``cycles`` defaults to 1 … n.
     """
-    cmd = _finite(xyz_cmd_mm, f"{name}: the commanded position")
+    cmd = finite(xyz_cmd_mm, f"{name}: the commanded position")
     if cmd.shape != (3,):
-        raise _bad(f"{name}: the commanded position must have shape (3,), got {cmd.shape}.")
-    p = _finite(xyz_mm, f"{name}: the attained positions")
+        raise bad_input(f"{name}: the commanded position must have shape (3,), got {cmd.shape}.")
+    p = finite(xyz_mm, f"{name}: the attained positions")
     if p.ndim != 2 or p.shape[1] != 3:
-        raise _bad(f"{name}: the attained positions must have shape (n, 3), got {p.shape}.")
+        raise bad_input(f"{name}: the attained positions must have shape (n, 3), got {p.shape}.")
     n = p.shape[0]
     if n < 2:
-        raise _bad(f"{name}: pose characteristics need at least 2 cycles, got {n}.")
+        raise bad_input(f"{name}: pose characteristics need at least 2 cycles, got {n}.")
     R_cmd = _rotations(orientation_cmd, f"{name}: the commanded orientation", None)
     R = _rotations(orientation, f"{name}: the attained orientations ({n} cycles)", n)
     cyc = tuple(range(1, n + 1)) if cycles is None else tuple(int(c) for c in cycles)
     if len(cyc) != n or len(set(cyc)) != n:
-        raise _bad(f"{name}: {n} cycles need {n} distinct cycle numbers, got {len(set(cyc))} of {len(cyc)}.")
+        raise bad_input(f"{name}: {n} cycles need {n} distinct cycle numbers, got {len(set(cyc))} of {len(cyc)}.")
     app = None if approach is None else tuple(str(a) for a in approach)
     if app is not None and len(app) != n:
-        raise _bad(f"{name}: {n} cycles need {n} approach labels, got {len(app)}.")
+        raise bad_input(f"{name}: {n} cycles need {n} approach labels, got {len(app)}.")
     return PoseSeries(name, cmd, R_cmd, p, R, cyc, app)
 
 
@@ -153,14 +142,14 @@ def series_from_table(
     c_cmd_deg, x_mm … c_deg`` (DESIGN section 5's CSV): ``xyzabc_cmd``, ``xyzabc`` (N, 6) mm and
     KUKA A, B, C deg. The cycles of a pose are sorted; every row of a pose must command the same pose.
     """
-    cmd = _finite(xyzabc_cmd, "the commanded poses")
-    att = _finite(xyzabc, "the attained poses")
+    cmd = finite(xyzabc_cmd, "the commanded poses")
+    att = finite(xyzabc, "the attained poses")
     N = len(pose)
     for a, what in ((cmd, "commanded"), (att, "attained")):
         if a.shape != (N, 6):
-            raise _bad(f"the {what} poses must have shape ({N}, 6) for {N} rows, got {a.shape}.")
+            raise bad_input(f"the {what} poses must have shape ({N}, 6) for {N} rows, got {a.shape}.")
     if len(cycle) != N or (approach is not None and len(approach) != N):
-        raise _bad(f"every one of the {N} rows needs a cycle number (and an approach label if any are given).")
+        raise bad_input(f"every one of the {N} rows needs a cycle number (and an approach label if any are given).")
     names = list(dict.fromkeys(str(p) for p in pose))
     out = {}
     for name in names:
@@ -169,7 +158,7 @@ def series_from_table(
         c = cmd[rows]
         R_c = R_from_kuka_abc_deg(c[:, 3:])
         if not (np.allclose(c[:, :3], c[0, :3], atol=1e-6) and np.allclose(R_c, R_c[0], atol=1e-6)):
-            raise _bad(f"{name}: its rows command different poses; one pose name, one command.")
+            raise bad_input(f"{name}: its rows command different poses; one pose name, one command.")
         out[name] = pose_series(
             name,
             c[0, :3],
@@ -276,7 +265,7 @@ class DistanceCharacteristics:
 def distance_characteristics(a: PoseSeries, b: PoseSeries) -> DistanceCharacteristics:
     """AD and RD between poses ``a`` and ``b``, cycle j of ``a`` paired with cycle j of ``b``."""
     if a.cycles != b.cycles:
-        raise _bad(f"distance {a.name}-{b.name} pairs the cycles, and the two poses have different cycles.")
+        raise bad_input(f"distance {a.name}-{b.name} pairs the cycles, and the two poses have different cycles.")
     s_c = np.abs(a.xyz_cmd_mm - b.xyz_cmd_mm)  # (3,)
     D_xyz = np.abs(a.xyz_mm - b.xyz_mm)  # (n, 3)
     D = np.linalg.norm(a.xyz_mm - b.xyz_mm, axis=1)
@@ -310,11 +299,11 @@ def iso9283_result(
     items = list(series.values()) if isinstance(series, Mapping) else list(series)
     by_name = {s.name: s for s in items}
     if len(by_name) != len(items):
-        raise _bad("two series carry the same pose name.")
+        raise bad_input("two series carry the same pose name.")
     dist = []
     for a, b in distances:
         if a not in by_name or b not in by_name:
-            raise _bad(f"distance {a}-{b} names a pose that was not measured; poses: {sorted(by_name)}.")
+            raise bad_input(f"distance {a}-{b} names a pose that was not measured; poses: {sorted(by_name)}.")
         dist.append(distance_characteristics(by_name[a], by_name[b]))
     return Iso9283Result({s.name: pose_characteristics(s) for s in items}, tuple(dist))
 
@@ -383,15 +372,15 @@ def iso9283_cube(
     share the diagonal C1C7, P3 and P5 the diagonal C2C8. ``R_base_cube`` (3, 3, default the
     identity, ISO's cube with edges along the base axes) holds the cube's axes as columns.
     """
-    c = _finite(centre_mm, "the cube's centre")
+    c = finite(centre_mm, "the cube's centre")
     if c.shape != (3,):
-        raise _bad(f"the cube's centre must have shape (3,), got {c.shape}.")
+        raise bad_input(f"the cube's centre must have shape (3,), got {c.shape}.")
     a = float(edge_mm)
     if not np.isfinite(a) or a <= 0:
-        raise _bad(f"the cube's edge must be a positive length in mm, got {edge_mm}.")
+        raise bad_input(f"the cube's edge must be a positive length in mm, got {edge_mm}.")
     f = float(corner_fraction)
     if not 0.08 <= f <= 0.12:
-        raise _bad(f"ISO 9283 puts P2-P5 at 10 % ± 2 % of the diagonal from the corners, got {f:.1%}.")
+        raise bad_input(f"ISO 9283 puts P2-P5 at 10 % ± 2 % of the diagonal from the corners, got {f:.1%}.")
     R = np.eye(3) if R_base_cube is None else _rotations(R_base_cube, "the cube's orientation", None)
     h = a / 2.0
     local = {"C1": (-h, -h, -h), "C2": (h, -h, -h), "C3": (h, h, -h), "C4": (-h, h, -h)}

@@ -24,18 +24,14 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.core.accuracy.inputs import bad_input, finite
 from service.core.geometry.so3 import angle_between
 
 Array = NDArray[np.float64]
 
 
 def _positions(p_mm: ArrayLike, name: str = "p_mm") -> Array:
-    p = np.asarray(p_mm, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3), not {p.shape}")
-    if not np.all(np.isfinite(p)):
-        raise ValueError(f"{name} contains NaN or infinity")
-    return p
+    return finite(p_mm, name, (None, 3))
 
 
 def at_rest(
@@ -57,7 +53,7 @@ def at_rest(
     t = np.asarray(t_s, dtype=np.float64).reshape(-1)
     p = _positions(p_mm)
     if t.shape != (len(p),):
-        raise ValueError(f"t_s must have shape ({len(p)},), not {t.shape}")
+        raise bad_input(f"t_s must have shape ({len(p)},), not {t.shape}")
     n = len(p)
     if n < 2:
         return np.zeros(n, dtype=bool)
@@ -79,7 +75,7 @@ def rest_runs(mask: ArrayLike, min_frames: int = 3) -> list[tuple[int, int]]:
     """The runs ``(i0, i1)`` (i1 exclusive) of True in ``mask`` (N,) at least ``min_frames`` long, in order."""
     m = np.asarray(mask, dtype=bool).reshape(-1)
     if min_frames < 1:
-        raise ValueError(f"min_frames must be >= 1, not {min_frames}")
+        raise bad_input(f"min_frames must be >= 1, not {min_frames}")
     edges = np.flatnonzero(np.diff(np.concatenate([[0], m.astype(np.int8), [0]])))
     return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True) if b - a >= min_frames]
 
@@ -88,7 +84,7 @@ def group_positions(p_mm: ArrayLike, tol_mm: float = 5.0) -> list[int]:
     """Per stop (K, 3) mm its group 0, 1, … in order of first visit (see the module docstring)."""
     p = _positions(p_mm)
     if not tol_mm > 0:
-        raise ValueError(f"tol_mm must be positive, not {tol_mm}")
+        raise bad_input(f"tol_mm must be positive, not {tol_mm}")
     firsts: list[Array] = []
     out = []
     for q in p:
@@ -109,7 +105,7 @@ def circle_directions(p_mm: ArrayLike, moving: ArrayLike) -> list[str | None]:
     p = _positions(p_mm)
     mv = np.asarray(moving, dtype=bool).reshape(-1)
     if mv.shape != (len(p),):
-        raise ValueError(f"moving must have shape ({len(p)},), not {mv.shape}")
+        raise bad_input(f"moving must have shape ({len(p)},), not {mv.shape}")
     out: list[str | None] = [None] * len(p)
     idx = np.flatnonzero(mv)
     if len(idx) < 3:

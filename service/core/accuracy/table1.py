@@ -30,19 +30,15 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.core.accuracy.inputs import bad_input, finite
 from service.core.accuracy.iso9283 import wrap_deg
 from service.core.geometry.frames import check_T, opk_from_R
-from service.core.results import Reason, SolveError
 
 Array = NDArray[np.float64]
 
 #: Per row, the deviation components in the order of the paper's columns.
 COMPONENTS = ("dx_mm", "dy_mm", "dz_mm", "domega_deg", "dphi_deg", "dkappa_deg")
 SIGMAS = ("sigma_x_mm", "sigma_y_mm", "sigma_z_mm", "sigma_omega_deg", "sigma_phi_deg", "sigma_kappa_deg")
-
-
-def _bad(message: str) -> SolveError:
-    return SolveError(Reason.bad_input, message)
 
 
 def forward_reverse_labels(k: int) -> list[str]:
@@ -96,15 +92,6 @@ class Table1Result:
         }
 
 
-def _finite(x: ArrayLike, shape: tuple[int, ...], name: str) -> Array:
-    a = np.asarray(x, dtype=np.float64)
-    if a.shape != shape:
-        raise _bad(f"{name} must have shape {shape}, got {a.shape}.")
-    if not np.all(np.isfinite(a)):
-        raise _bad(f"{name} contains NaN or infinity.")
-    return a
-
-
 def _pairs(labels: Sequence[Any]) -> list[tuple[str, int, int]]:
     """(label, first visit, second visit) per position, in order of first visit."""
     seen: dict[str, list[int]] = {}
@@ -112,7 +99,7 @@ def _pairs(labels: Sequence[Any]) -> list[tuple[str, int, int]]:
         seen.setdefault(str(lab), []).append(i)
     wrong = {lab: len(v) for lab, v in seen.items() if len(v) != 2}
     if wrong:
-        raise _bad(f"every position must be visited exactly twice; visits per position: {wrong}.")
+        raise bad_input(f"every position must be visited exactly twice; visits per position: {wrong}.")
     return [(lab, v[0], v[1]) for lab, v in seen.items()]
 
 
@@ -144,25 +131,25 @@ def table1(
     """
     T = np.asarray(T_base_flange, dtype=np.float64)
     if T.ndim != 3 or T.shape[1:] != (4, 4) or T.shape[0] < 2:
-        raise _bad(f"the measured poses must have shape (m, 4, 4) with m >= 2, got {T.shape}.")
+        raise bad_input(f"the measured poses must have shape (m, 4, 4) with m >= 2, got {T.shape}.")
     m = T.shape[0]
     for i in range(m):
         try:
             check_T(T[i], name=f"the pose of visit {i + 1}")
         except ValueError as e:
-            raise _bad(f"{e}.") from None
-    s_p = _finite(sigma_position_mm, (m, 3), f"sigma_position_mm for {m} visits")
-    s_r = _finite(sigma_rotation_deg, (m, 3), f"sigma_rotation_deg for {m} visits")
+            raise bad_input(f"{e}.") from None
+    s_p = finite(sigma_position_mm, f"sigma_position_mm for {m} visits", (m, 3))
+    s_r = finite(sigma_rotation_deg, f"sigma_rotation_deg for {m} visits", (m, 3))
     if np.any(s_p < 0) or np.any(s_r < 0):
-        raise _bad("a standard deviation is negative.")
+        raise bad_input("a standard deviation is negative.")
     if angles not in ("relative", "difference"):
-        raise _bad(f'angles must be "relative" or "difference", got {angles!r}.')
+        raise bad_input(f'angles must be "relative" or "difference", got {angles!r}.')
     if labels is None:
         if m % 2:
-            raise _bad(f"forward then reverse visits come in an even number, got {m}; or give the labels.")
+            raise bad_input(f"forward then reverse visits come in an even number, got {m}; or give the labels.")
         labels = forward_reverse_labels(m // 2)
     elif len(labels) != m:
-        raise _bad(f"{m} visits need {m} position labels, got {len(labels)}.")
+        raise bad_input(f"{m} visits need {m} position labels, got {len(labels)}.")
     rows = []
     for lab, i1, i2 in _pairs(labels):
         d_t = T[i2, :3, 3] - T[i1, :3, 3]
