@@ -111,7 +111,13 @@ def circle_report(
     T_rep = _stack(path, "T_base_flange_reported")
     assert T_meas is not None and T_rep is not None
     result = circle_result(
-        T_meas[:, :3, 3], directions, radius_mm, centre_mm=centre_mm, R=T_meas[:, :3, :3], p_robot_mm=T_rep[:, :3, 3]
+        T_meas[:, :3, 3],
+        directions,
+        radius_mm,
+        centre_mm=centre_mm,
+        R=T_meas[:, :3, :3],
+        p_robot_mm=T_rep[:, :3, 3],
+        R_robot=T_rep[:, :3, :3],
     )
     sp = np.array([s["sigma_position_mm"] for s in path], dtype=np.float64)
     details: dict[str, Any] = {
@@ -123,7 +129,9 @@ def circle_report(
     if _has_truth(path):
         T_true = _stack(path, "T_base_flange_true")
         assert T_true is not None
-        truth = circle_result(T_true[:, :3, 3], directions, radius_mm, centre_mm=centre_mm, R=T_true[:, :3, :3])
+        truth = circle_result(
+            T_true[:, :3, 3], directions, radius_mm, centre_mm=centre_mm, R=T_true[:, :3, :3], R_robot=T_rep[:, :3, :3]
+        )
         details["truth"] = truth.to_dict()
         err = np.linalg.norm(T_meas[:, :3, 3] - T_true[:, :3, 3], axis=1)
         details["measured_minus_true_mm"] = {"max": float(err.max()), "rms": float(np.sqrt(np.mean(err**2)))}

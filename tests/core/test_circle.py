@@ -191,6 +191,24 @@ def test_orientation_wobble_gives_its_amplitude_and_rms():
     assert abs(res.orientation_deviation_rms_deg - 0.4) < 1e-9
 
 
+def test_a_tool_turning_along_the_path_is_measured_against_the_robots_orientation():
+    # the command turns the tool by up to 8 deg along the circle (a camera kept aimed at a plate);
+    # the arm follows it with a constant 0.3 deg offset (hand-eye, base) and the same 0.4 deg
+    # wobble as above: only the wobble is the deviation along the path
+    alpha, R0 = np.radians(0.4), R_from_rotvec([0.3, -1.1, 2.0])
+    k = np.array([0.2, 0.9, -0.4]) / np.linalg.norm([0.2, 0.9, -0.4])
+    p, d = two_way(circle(R_NOM))
+    t = np.concatenate([np.arange(720), -np.arange(720)]) * 2 * np.pi / 720 + np.radians(10.0)
+    R_cmd = R0 @ R_from_rotvec(np.radians(8.0) * np.stack([np.cos(t), np.sin(t), 0 * t], axis=1))
+    offset = R_from_rotvec(np.radians(0.3) * np.array([0.0, 0.6, 0.8]))
+    Rs = R_cmd @ offset @ R_from_rotvec(alpha * np.sin(t)[:, None] * k)
+    against_the_robot = circle_result(p, d, R_NOM, R=Rs, R_robot=R_cmd)
+    assert abs(against_the_robot.orientation_deviation_max_deg - 0.4) < 1e-9
+    np.testing.assert_allclose(against_the_robot.orientation_deviation_deg, 0.4 * np.abs(np.sin(t)), atol=1e-9)
+    alone = circle_result(p, d, R_NOM, R=Rs)  # without the command, the turning counts: ~8 deg
+    assert alone.orientation_deviation_max_deg > 7.0
+
+
 def test_centre_offset_from_the_nominal_centre_in_plane_and_along_the_normal():
     shift_in, shift_n = 0.7 * (0.6 * E1 - 0.8 * E2), -0.25 * N_HAT  # 0.7 mm in the plane, -0.25 along n
     p, d = two_way(circle(R_NOM))

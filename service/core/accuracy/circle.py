@@ -37,14 +37,18 @@ ISO 230-4 defines its figures on a 2-D path; a robot's path is 3-D, so:
      exactly, where a simplex search on the non-smooth span can stall on one of its kinks;
    - the common centre's offset from the nominal centre, in the plane and along the normal;
    - beyond a ballbar: each point's signed distance from the plane (span, RMS); with
-     orientations, the angle of each ``R`` from their chordal mean (max, RMS, deg); with the
-     robot's commanded or reported positions, each measured point's distance from its own.
+     orientations, the angle of each ``R`` from their chordal mean (max, RMS, deg) — or, with the
+     robot's own orientations too, of each point's rotation from its robot orientation
+     (``R_robot^T R``) from the mean of those rotations: a program that turns the tool along the
+     circle (a camera kept aimed at a plate) is measured against its command, and a constant
+     offset (hand-eye, base) is not counted; with the robot's commanded or reported positions,
+     each measured point's distance from its own.
 
 One direction missing: its G, ``G_bidirectional_mm``, ``H_mm`` (and the bidirectional MZC) are
 None and ``notes`` says why; F and the per-point arrays are about the LSC of the points there
 are, the mean radial deviation is that direction's. ``require_both=True`` raises instead.
-Malformed input (shapes, labels, non-finite, R <= 0) raises ``ValueError``; :class:`SolveError`
-for input that gives no figures: ``bad_input`` (< ``MIN_POINTS`` points in a direction, cw and
+Malformed input (shapes, labels, non-finite, R <= 0) raises ``SolveError(bad_input)``, as does
+input that gives no figures: ``bad_input`` (< ``MIN_POINTS`` points in a direction, cw and
 ccw turning the same way), ``degenerate_geometry`` (collinear or coincident), ``no_convergence``.
 """
 
@@ -257,6 +261,7 @@ def circle_result(
     centre_mm: ArrayLike | None = None,
     R: ArrayLike | None = None,
     p_robot_mm: ArrayLike | None = None,
+    R_robot: ArrayLike | None = None,
     minimum_zone: bool = True,
     require_both: bool = False,
     max_gap_deg: float = 45.0,
@@ -277,6 +282,9 @@ def circle_result(
     p_robot_mm : (N, 3) float, mm, optional
         The robot's commanded or reported positions at the same instants; gives
         ``robot_deviation_*_mm`` (the distance of each measured point from its own).
+    R_robot : (N, 3, 3) float, optional
+        The robot's commanded or reported orientations at the same instants (with ``R``): the
+        orientation deviation is then measured against them (module docstring).
     minimum_zone : bool
         Also compute the minimum-zone figures (``G_mzc_*_mm``, ``centre_mzc_mm``).
     require_both : bool
@@ -296,6 +304,7 @@ def circle_result(
     c_nom = None if centre_mm is None else finite(centre_mm, "centre_mm", (3,))
     Rs = None if R is None else finite(R, "R", (N, 3, 3))
     p_rob = None if p_robot_mm is None else finite(p_robot_mm, "p_robot_mm", (N, 3))
+    R_rob = None if R_robot is None or Rs is None else finite(R_robot, "R_robot", (N, 3, 3))
     n_cw, n_ccw = int(cw.sum()), int(N - cw.sum())
     for label, n in (("cw", n_cw), ("ccw", n_ccw)):
         if 0 < n < MIN_POINTS or N == 0:
@@ -346,7 +355,11 @@ def circle_result(
     mz_all = _min_zone(q, c) if minimum_zone else None
     offset = None if c_nom is None else in3d(c) - c_nom
     dist = (p - o) @ normal
-    ang = None if Rs is None else np.degrees(angle_between(R_mean(Rs), Rs))
+    if Rs is not None and R_rob is not None:
+        D = np.swapaxes(R_rob, -1, -2) @ Rs  # each point's rotation from its robot orientation
+        ang = np.degrees(angle_between(R_mean(D), D))
+    else:
+        ang = None if Rs is None else np.degrees(angle_between(R_mean(Rs), Rs))
     rob = None if p_rob is None else np.linalg.norm(p - p_rob, axis=1)
     radii = [x for x in (out["radius_cw_mm"], out["radius_ccw_mm"]) if x is not None]
     return CircleResult(
