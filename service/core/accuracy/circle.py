@@ -355,11 +355,12 @@ def circle_result(
     mz_all = _min_zone(q, c) if minimum_zone else None
     offset = None if c_nom is None else in3d(c) - c_nom
     dist = (p - o) @ normal
+    ang: Array | None = None
     if Rs is not None and R_rob is not None:
         D = np.swapaxes(R_rob, -1, -2) @ Rs  # each point's rotation from its robot orientation
         ang = np.degrees(angle_between(R_mean(D), D))
-    else:
-        ang = None if Rs is None else np.degrees(angle_between(R_mean(Rs), Rs))
+    elif Rs is not None:
+        ang = np.degrees(angle_between(R_mean(Rs), Rs))
     rob = None if p_rob is None else np.linalg.norm(p - p_rob, axis=1)
     radii = [x for x in (out["radius_cw_mm"], out["radius_ccw_mm"]) if x is not None]
     return CircleResult(
