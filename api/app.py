@@ -34,7 +34,7 @@ from fastapi.staticfiles import StaticFiles
 
 from api import docs, errors, plant
 from api.middleware import EdgeGuard, EdgeRules
-from api.routes import calibration, camera_calibration, config, data, handeye, health, measure, sim, tests
+from api.routes import calibration, camera_calibration, compensate, config, data, handeye, health, measure, sim, tests
 from api.security import resolve_token
 from api.ws import Hub
 from service.runtime.worker import Worker
@@ -109,7 +109,7 @@ def create_app(settings: Settings) -> FastAPI:
             CORSMiddleware, allow_origins=settings.server.cors_origins, allow_methods=["*"], allow_headers=["*"]
         )
     # the hand-eye session routes come before /calibration/{kind} so that their paths win
-    for module in (health, measure, data, config, handeye, camera_calibration, calibration, sim, tests):
+    for module in (health, measure, data, config, handeye, camera_calibration, calibration, sim, tests, compensate):
         app.include_router(module.router)
     docs.install(app)
     if STATIC.is_dir():

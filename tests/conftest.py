@@ -36,6 +36,8 @@ SLOW_MODULES = (
     "tests/test_calibrate_rig_cli.py",
     "tests/test_calibrate_robot.py",
     "tests/test_ur5_laser_tracker.py",
+    "tests/test_ur5_compensation.py",
+    "tests/api/test_compensate_api.py",
     "tests/test_real_panel.py",
     "tests/test_dbat_reference.py",
 )

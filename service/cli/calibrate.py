@@ -54,6 +54,12 @@ def _add_robot(cal: Subparsers) -> None:
         metavar=("X", "Y", "Z"),
         help="the measured point on the flange, when the CSV has no commanded positions",
     )
+    rb.add_argument(
+        "--parameterisation",
+        choices=["hayati", "dh"],
+        default="hayati",
+        help="hayati: Hayati's beta in place of d on near-parallel links (default); dh: classic DH errors only",
+    )
     rb.add_argument("-o", "--output", type=Path, help="write the corrected model (JSON)")
     rb.set_defaults(func=run_robot)
 
@@ -107,7 +113,7 @@ def run_robot(args: argparse.Namespace) -> int:
     from service.workflows.calibrate_robot import run_robot_calibration
 
     with solving("calibrate robot"):
-        out = run_robot_calibration(args.robot, args.samples, args.test, args.tool_mm)
+        out = run_robot_calibration(args.robot, args.samples, args.test, args.tool_mm, args.parameterisation)
     if args.output:
         formats.write_json_atomic(args.output, out)
     print_json(out)

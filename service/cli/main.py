@@ -15,14 +15,14 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
-from service.cli import bench, calibrate, demo, measure, report, resect, serve, simulate, targets
+from service.cli import bench, calibrate, compensate, demo, measure, report, resect, serve, simulate, targets
 from service.cli.common import EXIT_BAD_INPUT, EXIT_FAILED, CliError, Failed, print_err, print_json
 from service.core.results import Failure, SolveError
 
 __all__ = ["EXIT_BAD_INPUT", "EXIT_FAILED", "CliError", "build_parser", "main"]
 
 # in the order of the help's list of verbs
-VERBS = (serve, resect, calibrate, measure, simulate, targets, demo, bench, report)
+VERBS = (serve, resect, calibrate, compensate, measure, simulate, targets, demo, bench, report)
 
 
 def build_parser() -> argparse.ArgumentParser:

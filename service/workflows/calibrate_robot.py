@@ -6,7 +6,9 @@ robot's base frame or in the laser-tracker form ``x_t, y_t, z_t`` (commanded)
 plus ``x_dif, y_dif, z_dif`` (measured − commanded). With commanded positions
 the measured point's offset on the flange is found first (the controller's own
 FK with every DH parameter fixed); otherwise ``--tool-mm`` gives it.
-Output: the corrected model (DH rows, base, flange) with σ of every
+Output (``m.json``, schema version 2 of :mod:`service.store.robot_model`): the
+corrected model (DH rows, Hayati's beta on near-parallel links unless
+``parameterisation="dh"``, base, flange) with σ of every
 identified correction, the combinations frozen as unidentifiable, and the
 errors before/after on the calibration poses and, with ``--test``, on poses
 that took no part in it.
@@ -23,6 +25,7 @@ import numpy as np
 from service.core.robot.identification import dh_parameter_names, identify_kinematics
 from service.core.robot.kinematics import nominal_model
 from service.store import formats
+from service.store.robot_model import robot_model_to_json
 
 
 def read_robot_samples(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
@@ -65,7 +68,9 @@ def _errors(p_true: np.ndarray, p_model: np.ndarray) -> dict[str, float]:
     }
 
 
-def run_robot_calibration(robot: str, samples: Path, test: Path | None, tool_mm: list[float] | None) -> dict[str, Any]:
+def run_robot_calibration(
+    robot: str, samples: Path, test: Path | None, tool_mm: list[float] | None, parameterisation: str = "hayati"
+) -> dict[str, Any]:
     nominal = nominal_model(robot)
     q, cmd, meas = read_robot_samples(samples)
     if cmd is not None:
@@ -73,24 +78,17 @@ def run_robot_calibration(robot: str, samples: Path, test: Path | None, tool_mm:
         tool = np.array([tool_fit.parameter(n)[0] for n in ("tool_x", "tool_y", "tool_z")])
     else:
         tool = np.zeros(3) if tool_mm is None else np.asarray(tool_mm, dtype=np.float64)
-    res = identify_kinematics(nominal, q, meas, p_flange_point_mm=tool)
+    res = identify_kinematics(nominal, q, meas, p_flange_point_mm=tool, parameterisation=parameterisation)
     # the fair "before": the nominal arm, placed in the measuring frame (base fitted, DH untouched)
     base_only = identify_kinematics(nominal, q, meas, fixed=dh_parameter_names(), p_flange_point_mm=tool)
     m = res.model
     out: dict[str, Any] = {
         "ok": True,
-        "robot": robot,
-        "model": {
-            "a_mm": m.a_mm.tolist(),
-            "alpha_rad": m.alpha_rad.tolist(),
-            "d_mm": m.d_mm.tolist(),
-            "theta_offset_rad": m.theta_offset_rad.tolist(),
-            "T_base_j0": m.T_base_j0.tolist(),
-            "T_j6_flange": m.T_j6_flange.tolist(),
-        },
+        **robot_model_to_json(robot, m, parameterisation),
         "measured_point_on_flange_mm": res.p_flange_point_mm.tolist(),
         "corrections": {n: {"delta": d, "sigma": s} for n, (d, s) in res.as_dict().items()},
         "unidentifiable": list(res.unidentifiable),
+        "condition": round(res.condition, 1),
         "calibration": {
             "nominal_mm": _errors(meas, base_only.predict(q)),
             "corrected_mm": _errors(meas, res.predict(q)),

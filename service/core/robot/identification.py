@@ -9,7 +9,8 @@ the controller's classic Denavit-Hartenberg model (see
 Parameters (all *errors* added to the nominal model, mm and rad):
 
 - per joint ``i = 1..6``: ``a{i}``, ``alpha{i}``, ``d{i}``, ``theta{i}``
-  (the DH row and the joint's zero offset);
+  (the DH row and the joint's zero offset); with ``parameterisation="hayati"``
+  also ``beta{i}`` for every near-parallel link (below);
 - ``base_x, base_y, base_z, base_rx, base_ry, base_rz``: a small transform
   ``T_delta`` (rotation vector, translation) with
   ``T_base_j0 = T_delta @ T_base_j0_nominal``;
@@ -30,6 +31,30 @@ separable from ``alpha5`` in practice) and frozen at their nominal values, keepi
 base and tool parameters first and earlier joints before later ones. The
 data must then determine every remaining parameter, or the solve refuses
 (``poor_motion``) and names the parameters it cannot see.
+
+**Parallel axes: classic DH or Hayati's beta.** Classic DH has no small
+number for a tilt of one of two parallel axes about the link's y axis (across
+the common normal): for exactly parallel axes that error is not in the model
+at all (UR's axes 2-4, KUKA's 2-3), and for nearly parallel ones the
+common normal slides far along the axis, ``d_i`` and ``d_{i+1}`` become nearly
+the same column of the Jacobian and the identification is ill-conditioned
+(its condition number grows like 1/eps^2 with the angle eps between the axes:
+~1e3 at 4 deg, ~3e5 at 0.25 deg, Hayati's ~17; tests/core/test_hayati.py).
+``parameterisation="hayati"``
+(the default of ``posecell calibrate robot``) uses Hayati and Mirmirani's
+modification (1985) on exactly those links: link ``i`` becomes
+``Rz(theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i) Ry(beta_i)`` with ``d_i`` held at its
+nominal value and ``beta_i`` identified, for every link whose nominal axes are
+within 5 deg of parallel (:func:`~service.core.robot.kinematics.near_parallel_links`);
+other links keep classic DH, which is regular there and which a beta would
+only duplicate (four numbers already place a line). We chose this
+over a product-of-exponentials model because it keeps one chain for every
+user of :class:`KinematicModel` (nominal models, simulator, hand-eye, the
+model files, whose classic-DH versions stay readable: they are Hayati models
+with beta = 0), keeps the numeric freezing of redundant combinations above as
+the one identifiability reduction (POE needs its own: 6 numbers per twist for
+4 line parameters and a zero), and every parameter stays a length or an angle
+of one link that a person can check against a data sheet.
 """
 
 from __future__ import annotations
@@ -44,7 +69,7 @@ from scipy.stats import qmc
 
 from service.core.geometry.so3 import R_from_rotvec, T_from_rotvec, rotvec_between, rotvec_from_R
 from service.core.results import Reason, SolveError
-from service.core.robot.kinematics import KinematicModel
+from service.core.robot.kinematics import KinematicModel, near_parallel_links
 
 Array = NDArray[np.float64]
 
@@ -55,7 +80,9 @@ N_STRUCTURE_CONFIGS = 64  # Halton configurations used to find the model's struc
 FD_STEP = 1e-4  # central-difference step, internal units (mm, or mrad at 1 m)
 
 _DH_KINDS = ("a", "alpha", "d", "theta")
-_ANGLE_KINDS = ("alpha", "theta")
+_MODEL_KINDS = (*_DH_KINDS, "beta")
+_ANGLE_KINDS = ("alpha", "theta", "beta")
+PARAMETERISATIONS = ("dh", "hayati")
 BASE_NAMES = ("base_x", "base_y", "base_z", "base_rx", "base_ry", "base_rz")
 TOOL_NAMES = ("tool_x", "tool_y", "tool_z", "tool_rx", "tool_ry", "tool_rz")
 
@@ -63,6 +90,13 @@ TOOL_NAMES = ("tool_x", "tool_y", "tool_z", "tool_rx", "tool_ry", "tool_rz")
 def dh_parameter_names() -> list[str]:
     """Names of the 24 DH error parameters, joint by joint: ``a1, alpha1, d1, theta1, a2, ...``."""
     return [f"{k}{i}" for i in range(1, 7) for k in _DH_KINDS]
+
+
+def hayati_parameter_names(nominal: KinematicModel) -> list[str]:
+    """Names of the Hayati model's link parameters: the DH rows plus ``beta{i}`` after ``theta{i}``
+    for every near-parallel link ``i`` of ``nominal``."""
+    parallel = near_parallel_links(nominal)
+    return [n for i in range(1, 7) for n in (*[f"{k}{i}" for k in _DH_KINDS], *([f"beta{i}"] * (i in parallel)))]
 
 
 def _is_angle(name: str) -> bool:
@@ -88,7 +122,7 @@ class _Layout:
         """The nominal model with the physical errors ``delta`` (len(names),) applied."""
         v = dict(zip(self.names, delta, strict=True))
         nom = self.nominal
-        rows = {k: np.array([v.get(f"{k}{i}", 0.0) for i in range(1, 7)]) for k in _DH_KINDS}
+        rows = {k: np.array([v.get(f"{k}{i}", 0.0) for i in range(1, 7)]) for k in _MODEL_KINDS}
         T_b = T_from_rotvec([v.get(n, 0.0) for n in BASE_NAMES[3:]], [v.get(n, 0.0) for n in BASE_NAMES[:3]])
         T_t = T_from_rotvec([v.get(n, 0.0) for n in TOOL_NAMES[3:]], [v.get(n, 0.0) for n in TOOL_NAMES[:3]])
         return replace(
@@ -97,6 +131,7 @@ class _Layout:
             alpha_rad=nom.alpha_rad + rows["alpha"],
             d_mm=nom.d_mm + rows["d"],
             theta_offset_rad=nom.theta_offset_rad + rows["theta"],
+            beta_rad=nom.beta_rad + rows["beta"],
             T_base_j0=T_b @ nom.T_base_j0,
             T_j6_flange=nom.T_j6_flange @ T_t,
         )
@@ -205,6 +240,11 @@ class KinematicIdResult:
     p_flange_point_mm : (3,) float, mm
         The measured point in the flange frame (origin for pose data).
     n_configs, n_iter : int
+    parameterisation : str
+        ``"dh"`` (classic) or ``"hayati"`` (see the module docstring).
+    condition : float
+        Condition number of the column-normalised identification Jacobian of
+        the free parameters at the solution: large means nearly redundant.
     """
 
     model: KinematicModel
@@ -222,6 +262,8 @@ class KinematicIdResult:
     n_configs: int
     n_iter: int
     covariance: Array = field(repr=False)  # (P, P), mm and rad; zero rows/columns for fixed parameters
+    parameterisation: str = "dh"
+    condition: float = float("nan")
 
     def parameter(self, name: str) -> tuple[float, float]:
         """``(delta, sigma)`` of one parameter, mm or rad."""
@@ -269,6 +311,22 @@ class KinematicIdResult:
         return nominal.fk(q)
 
 
+def identification_jacobian(
+    nominal: KinematicModel, q_rad: ArrayLike, names: Sequence[str], p_flange_point_mm: ArrayLike | None = None
+) -> Array:
+    """Column-normalised Jacobian (3M, len(names)) of measured positions w.r.t. the named errors, at zero errors.
+
+    For looking at a parameterisation's conditioning (``np.linalg.cond`` of it):
+    ``names`` may mix base, tool, DH and ``beta{i}`` names of any link.
+    """
+    q = np.asarray(q_rad, dtype=np.float64).reshape(-1, 6)
+    point = np.zeros(3) if p_flange_point_mm is None else np.asarray(p_flange_point_mm, dtype=np.float64).reshape(3)
+    layout = _Layout(nominal, tuple(names), np.ones(len(names), dtype=bool), False, point)
+    J = _jacobian(layout, np.zeros(len(names)), q, layout.observe(nominal, q), 1.0, np.arange(len(names)))
+    norms = np.linalg.norm(J, axis=0)
+    return J / np.where(norms > 0, norms, 1.0)
+
+
 def identify_kinematics(
     nominal: KinematicModel,
     q_rad: ArrayLike,
@@ -280,6 +338,7 @@ def identify_kinematics(
     p_flange_point_mm: ArrayLike | None = None,
     rotation_weight_mm: float = ANGLE_SCALE_MM,
     max_nfev: int = 100,
+    parameterisation: str = "dh",
 ) -> KinematicIdResult:
     """Identify the geometric errors of ``nominal`` from joint angles and measured flange positions or poses.
 
@@ -308,6 +367,9 @@ def identify_kinematics(
         position error (pose data only).
     max_nfev : int
         Iteration limit of the least-squares solver.
+    parameterisation : {"dh", "hayati"}
+        Classic DH errors, or Hayati's beta in place of d on near-parallel
+        links (see the module docstring).
 
     Returns
     -------
@@ -344,7 +406,12 @@ def identify_kinematics(
     if not rotation_weight_mm > 0:
         raise ValueError(f"rotation_weight_mm must be positive, got {rotation_weight_mm}")
 
-    names = dh_parameter_names()
+    if parameterisation not in PARAMETERISATIONS:
+        raise ValueError(f"parameterisation must be one of {PARAMETERISATIONS}, got {parameterisation!r}")
+    link_names = dh_parameter_names() if parameterisation == "dh" else hayati_parameter_names(nominal)
+    # Hayati: beta replaces d on a near-parallel link, whose d only slides the common normal along the axis
+    replaced = {f"d{i}" for i in near_parallel_links(nominal)} if parameterisation == "hayati" else set()
+    names = list(link_names)
     if estimate_base:
         names += BASE_NAMES
     if estimate_tool:
@@ -353,9 +420,11 @@ def identify_kinematics(
     if unknown:
         raise SolveError(Reason.bad_input, f"cannot fix unknown or unestimated parameters {unknown}", {"known": names})
     # base and tool first so that the greedy selection keeps them and freezes the DH rows they absorb
-    order = [n for n in names if n.startswith(("base", "tool"))] + dh_parameter_names()
+    order = [n for n in names if n.startswith(("base", "tool"))] + link_names
     user_fixed = set(fixed)
-    layout = _Layout(nominal, tuple(order), np.array([n not in user_fixed for n in order]), with_orientation, point)
+    layout = _Layout(
+        nominal, tuple(order), np.array([n not in user_fixed | replaced for n in order]), with_orientation, point
+    )
     P = len(order)
     zero = np.zeros(P)
 
@@ -365,7 +434,7 @@ def identify_kinematics(
     cand = np.flatnonzero(layout.free)
     J_s = _jacobian(layout, zero, q_s, obs_s, rotation_weight_mm, cand)
     dep, _ = _dependent_columns(J_s, RANK_TOL)
-    structural = tuple(order[cand[j]] for j in dep)
+    structural = tuple(n for n in order if n in replaced - user_fixed) + tuple(order[cand[j]] for j in dep)
     free = layout.free.copy()
     free[cand[dep]] = False
     layout = replace(layout, free=free)
@@ -421,6 +490,7 @@ def identify_kinematics(
     cov = np.zeros((P, P))
     cov[np.ix_(cols, cols)] = cov_int / np.outer(scale, scale)
     sigma = np.sqrt(np.diag(cov))
+    s_J = np.linalg.svd(J / np.linalg.norm(J, axis=0), compute_uv=False)
 
     def split(r: Array) -> tuple[Array, float | None]:
         rr = r.reshape(M, -1)
@@ -447,4 +517,6 @@ def identify_kinematics(
         n_configs=M,
         n_iter=int(sol.nfev),
         covariance=cov,
+        parameterisation=parameterisation,
+        condition=float(s_J[0] / s_J[-1]),
     )

@@ -1,8 +1,12 @@
 """Kinematic models of 6-axis arms: forward kinematics, Jacobians, inverse kinematics.
 
-Kinematics use the classic (distal, standard) Denavit-Hartenberg convention:
-link ``i`` is ``Rz(theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i)`` with
-``theta_i = q_i + theta_offset_i``, so that
+Kinematics use the classic (distal, standard) Denavit-Hartenberg convention
+with Hayati's extra rotation: link ``i`` is
+``Rz(theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i) Ry(beta_i)`` with
+``theta_i = q_i + theta_offset_i``; ``beta_i`` is 0 in every nominal model (so
+the chain is plain classic DH) and is used by a corrected model only on links
+whose two joint axes are (near-)parallel (see :func:`near_parallel_links` and
+:mod:`service.core.robot.identification` for why), so that
 ``T_base_flange = T_base_j0 @ A_1 ... A_6 @ T_j6_flange``. ``j0`` is the DH
 frame of joint 1 (its z axis is joint 1's axis) and ``j6`` the DH frame of the
 last link; ``T_base_j0`` carries the base placement (a base tilt in the true
@@ -30,10 +34,13 @@ IK_TOL_MM = 1e-6
 IK_TOL_RAD = 1e-9
 IK_ROT_SCALE_MM = 1000.0  # weight of a radian of orientation error against a millimetre
 SINGULARITY_LENGTH_MM = 1000.0  # scales the angular rows of J for :meth:`KinematicModel.dexterity_mm`
+# consecutive joint axes closer to parallel than this carry Hayati's beta instead of d: classic DH's common
+# normal (hence d) runs away as the axes become parallel, while a tilt beta about y stays a small number
+NEAR_PARALLEL_RAD = float(np.radians(5.0))
 
 
-def _dh_links(theta: Array, a: Array, alpha: Array, d: Array) -> Array:
-    """Link transforms (N, 6, 4, 4) of ``Rz(theta) Tz(d) Tx(a) Rx(alpha)`` for theta (N, 6)."""
+def _dh_links(theta: Array, a: Array, alpha: Array, d: Array, beta: Array | None = None) -> Array:
+    """Link transforms (N, 6, 4, 4) of ``Rz(theta) Tz(d) Tx(a) Rx(alpha) Ry(beta)`` for theta (N, 6)."""
     ct, st = np.cos(theta), np.sin(theta)
     ca, sa = np.cos(alpha), np.sin(alpha)
     A = np.zeros((*theta.shape, 4, 4))
@@ -49,7 +56,17 @@ def _dh_links(theta: Array, a: Array, alpha: Array, d: Array) -> Array:
     A[..., 2, 2] = ca
     A[..., 2, 3] = d
     A[..., 3, 3] = 1.0
-    return A
+    if beta is None or not np.any(beta):
+        return A
+    cb, sb = np.cos(beta), np.sin(beta)
+    Ry = np.zeros((beta.shape[-1], 4, 4))
+    Ry[:, 0, 0] = cb
+    Ry[:, 0, 2] = sb
+    Ry[:, 1, 1] = 1.0
+    Ry[:, 2, 0] = -sb
+    Ry[:, 2, 2] = cb
+    Ry[:, 3, 3] = 1.0
+    return A @ Ry
 
 
 def _wrap(x: Array) -> Array:
@@ -76,6 +93,9 @@ class KinematicModel:
         The DH frame whose origin is the arm's wrist point for :meth:`branch`:
         4 (the wrist centre) for a spherical wrist, 3 (on axis 4) for a UR arm,
         whose axes 2, 3 and 4 are parallel.
+    beta_rad : (6,) float, rad
+        Hayati's rotation about the link's y axis, applied last in each link
+        (0 in the nominal models; see the module docstring).
     """
 
     name: str
@@ -87,9 +107,10 @@ class KinematicModel:
     T_base_j0: Array = field(default_factory=lambda: np.eye(4))
     T_j6_flange: Array = field(default_factory=lambda: np.eye(4))
     wrist_frame: int = 4
+    beta_rad: Array = field(default_factory=lambda: np.zeros(6))
 
     def __post_init__(self) -> None:
-        for name in ("a_mm", "alpha_rad", "d_mm", "theta_offset_rad"):
+        for name in ("a_mm", "alpha_rad", "d_mm", "theta_offset_rad", "beta_rad"):
             v = np.array(getattr(self, name), dtype=np.float64).reshape(-1)
             if v.shape != (6,) or not np.all(np.isfinite(v)):
                 raise ValueError(f"{name} must be 6 finite numbers, got {getattr(self, name)!r}")
@@ -109,7 +130,7 @@ class KinematicModel:
 
     def _frames(self, q: Array) -> Array:
         """Frames (N, 8, 4, 4) in the base: j0, j1 .. j6, flange, for q (N, 6)."""
-        A = _dh_links(q + self.theta_offset_rad, self.a_mm, self.alpha_rad, self.d_mm)
+        A = _dh_links(q + self.theta_offset_rad, self.a_mm, self.alpha_rad, self.d_mm, self.beta_rad)
         out = np.empty((q.shape[0], 8, 4, 4))
         T = np.broadcast_to(self.T_base_j0, (q.shape[0], 4, 4))
         out[:, 0] = T
@@ -244,6 +265,17 @@ class KinematicModel:
                 {"q_rad": q.tolist()},
             )
         return q
+
+
+def near_parallel_links(model: KinematicModel, tol_rad: float = NEAR_PARALLEL_RAD) -> tuple[int, ...]:
+    """Links ``i`` (1..5) whose joint axes ``i`` and ``i + 1`` are within ``tol_rad`` of parallel.
+
+    Link 6 joins axis 6 to the flange, not two joints, so it is never one.
+
+    >>> near_parallel_links(ur5()), near_parallel_links(kr15())
+    ((2, 3), (2,))
+    """
+    return tuple(i + 1 for i in range(5) if abs(np.sin(model.alpha_rad[i])) < np.sin(tol_rad))
 
 
 def kr15() -> KinematicModel:
