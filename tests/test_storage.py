@@ -428,3 +428,17 @@ def test_a_write_lock_held_by_another_connection_degrades_health_until_it_is_rel
     assert store.wait_written(seq, timeout_s=5.0)  # kept queued, written once the lock is gone
     assert store.health() == ("ok", "")
     assert [r["result"]["seq"] for r in store.measurements()] == [1]
+
+
+def test_a_batch_is_inserted_by_one_statement_of_many_rows():
+    import sqlite3
+
+    from service.store.rows import INSERT_EVENT, insert_rows_sql
+
+    sql = insert_rows_sql(INSERT_EVENT, 3)
+    assert sql.count("(?, ?, ?, ?, ?)") == 3 and sql.count("INSERT") == 1
+    conn = sqlite3.connect(":memory:")
+    conn.execute("CREATE TABLE events (t_wall, level, kind, message, details)")
+    rows = [("t", "info", f"k{i}", "m", None) for i in range(3)]
+    conn.execute(sql, [v for r in rows for v in r])
+    assert conn.execute("SELECT kind FROM events ORDER BY rowid").fetchall() == [("k0",), ("k1",), ("k2",)]

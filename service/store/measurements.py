@@ -56,12 +56,15 @@ from service.store.rows import (
     SCHEMA_VERSION,
     check_page,
     event_row,
+    insert_rows_sql,
     iso_utc,
     measurement_row,
     where_clause,
 )
 
 log = logging.getLogger(__name__)
+
+_ROWS_PER_INSERT = 256  # x 15 columns: far below SQLite's limit of bound variables (32 766 since 3.32)
 
 __all__ = ["MeasurementStore", "StorageError", "StoreFull"]
 
@@ -407,7 +410,10 @@ class MeasurementStore:
         """One transaction: the batch's rows plus the store's own events (errors, recovery)."""
         conn.execute("BEGIN")
         try:
-            conn.executemany(INSERT_MEASUREMENT, [(seq, *row) for seq, tag, row in batch if tag == "m"])
+            rows = [(seq, *row) for seq, tag, row in batch if tag == "m"]
+            for i in range(0, len(rows), _ROWS_PER_INSERT):  # one statement per chunk (rows.insert_rows_sql)
+                chunk = rows[i : i + _ROWS_PER_INSERT]
+                conn.execute(insert_rows_sql(INSERT_MEASUREMENT, len(chunk)), [v for row in chunk for v in row])
             conn.executemany(INSERT_EVENT, [row for _, tag, row in batch if tag == "e"] + own_events)
             conn.execute("COMMIT")
         except BaseException:
