@@ -232,3 +232,14 @@ def test_a_robot_path_that_fits_no_circle_is_a_note_not_a_failure(tmp_path):
     report = circle_report(_write(tmp_path / "circle.csv", header, rows), R_MM)
     assert "robot_path" not in report and report["robot_deviation_max_mm"] == pytest.approx(R_MM + E_MM, abs=1e-6)
     assert any("robot's reported path" in n for n in report["notes"])
+
+
+def test_the_drawn_path_breaks_where_points_are_missing_along_the_arc():
+    from service.workflows.report_figures import _broken_at_gaps
+
+    theta = np.radians(np.r_[np.arange(0.0, 90.0, 1.0), np.arange(130.0, 360.0, 1.0)])
+    t, d = _broken_at_gaps(theta, np.zeros_like(theta))
+    assert np.isnan(t).sum() == 1 and np.isnan(t[90]) and np.isnan(d[90])
+    # a full lap wrapping past 360 deg is no gap
+    t, _ = _broken_at_gaps(np.radians(np.arange(300.0, 420.0, 1.0)), np.zeros(120))
+    assert not np.isnan(t).any()

@@ -47,6 +47,7 @@ _RC = {
     "axes.titlesize": 10.0,
 }
 PNG_DPI = 100
+GAP_DEG = 3.0  # consecutive points farther apart than this are not joined by the drawn path
 COLOURS = {"cw": "#1f5fbf", "ccw": "#d0312d"}
 DIRECTIONS = ("cw", "ccw")
 BAND_FRACTION = 0.3  # the magnified deviations fill this fraction of the nominal radius
@@ -117,6 +118,17 @@ def _deviation_range_mm(profiles: Sequence[dict[str, Any]]) -> tuple[float, floa
     return min(0.0, *devs), max(0.0, *devs)
 
 
+def _broken_at_gaps(theta: np.ndarray, dev_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The path with a NaN (a break in the drawn line) wherever consecutive points are more than
+    ``GAP_DEG`` apart in angle: frames missing along an arc, or where a lap starts again, must not
+    be drawn as a chord across the circle."""
+    if theta.size < 2:
+        return theta, dev_mm
+    jump = np.abs(np.angle(np.exp(1j * np.diff(theta))))
+    cuts = np.flatnonzero(jump > math.radians(GAP_DEG)) + 1
+    return np.insert(theta, cuts, np.nan), np.insert(dev_mm, cuts, np.nan)
+
+
 def _polar_panel(ax: Any, profile: dict[str, Any], N: float, rings_mm: Sequence[float], title: str, gid: str) -> None:
     """One path's magnified polar plot on ``ax`` (mm in the plane; the radius R + N (r - R)); the
     SVG groups are named ``{gid}-path-cw``, ``{gid}-envelope-cw-inner`` … (unique in the page)."""
@@ -140,7 +152,8 @@ def _polar_panel(ax: Any, profile: dict[str, Any], N: float, rings_mm: Sequence[
         theta = np.radians(np.asarray(d["theta_deg"]))
         dev = np.asarray(d["radial_deviation_mm"])
         step = max(1, math.ceil(len(theta) / MAX_PLOTTED_POINTS))
-        ax.plot(*xy(theta[::step], dev[::step]), color=COLOURS[k], lw=1.2, gid=f"{gid}-path-{k}", label=k)
+        t_k, d_k = _broken_at_gaps(theta[::step], dev[::step])
+        ax.plot(*xy(t_k, d_k), color=COLOURS[k], lw=1.2, gid=f"{gid}-path-{k}", label=k)
         for edge in ("inner", "outer"):
             env = _envelope_deviation_mm(grid, R + d[f"envelope_{edge}_mm"], d["centre_offset_mm"]) - R
             ax.plot(*xy(grid, env), color=COLOURS[k], lw=0.6, ls=":", gid=f"{gid}-envelope-{k}-{edge}")
