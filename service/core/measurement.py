@@ -28,7 +28,7 @@ import numpy as np
 import orjson
 from numpy.typing import NDArray
 
-from service.core.results import Failure, PoseResult, Reason
+from service.core.results import Failure, PoseResult, Reason, TargetTable
 
 Array = NDArray[np.float64]
 
@@ -200,7 +200,11 @@ class Measurement:
 
     @cached_property
     def _wire(self) -> dict[str, Any]:
-        d = self.result.to_dict()
+        if isinstance(self.result, PoseResult) and isinstance(self.result.targets, TargetTable):
+            d = self.result.to_dict(targets=False)
+            d["targets"] = orjson.Fragment(self.result.targets.to_json())  # no dict per target
+        else:
+            d = self.result.to_dict()
         if self.camera:
             d["camera"] = self.camera
         if self.seq is not None:

@@ -11,9 +11,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
+from functools import lru_cache
 from typing import Any, overload
 
 import numpy as np
+import orjson
 
 
 class Reason(StrEnum):
@@ -124,6 +126,25 @@ class TargetTable(Sequence[TargetObservation]):
             self.ids[i], (float(u[0]), float(u[1])), (float(r[0]), float(r[1])), bool(self.coded[i]), bool(self.used[i])
         )
 
+    def to_json(self) -> str:
+        """The JSON text of :meth:`to_list` (the same text orjson writes of it), built from two
+        encodings of the coordinate arrays instead of a dict per target: the per-target objects
+        were most of a frame's encoding time on the service's hot path."""
+        n = len(self.ids)
+        if n == 0:
+            return "[]"
+        uv = _rows_json(self.uv_px, n)
+        res = _rows_json(self.residual_px, n)
+        used = self.used.tolist()
+        return (
+            "["
+            + ",".join(
+                f'{{"id":{_id_json(i)},"uv":[{q}],"residual_px":[{e}]{"}" if u else _REJECTED_TAIL}'
+                for i, q, e, u in zip(self.ids, uv, res, used, strict=True)
+            )
+            + "]"
+        )
+
     def to_list(self) -> list[dict[str, Any]]:
         uv = np.round(self.uv_px, 4).tolist()
         res = np.round(self.residual_px, 4).tolist()
@@ -131,6 +152,21 @@ class TargetTable(Sequence[TargetObservation]):
             {"id": i, "uv": q, "residual_px": e} if u else {"id": i, "uv": q, "residual_px": e, "rejected": True}
             for i, q, e, u in zip(self.ids, uv, res, self.used.tolist(), strict=True)
         ]
+
+
+_REJECTED_TAIL = ',"rejected":true}'
+
+
+def _rows_json(a: Any, n: int) -> list[str]:
+    """Per row of the (n, 2) array rounded to 4 decimals, its two numbers as orjson writes them
+    ("u,v"; NaN and infinities as null)."""
+    text = orjson.dumps(np.round(np.asarray(a, dtype=np.float64).reshape(n, 2), 4), option=orjson.OPT_SERIALIZE_NUMPY)
+    return text.decode()[2:-2].split("],[")
+
+
+@lru_cache(maxsize=4096)
+def _id_json(target_id: str) -> str:
+    return orjson.dumps(target_id).decode()  # a field's ids repeat every frame
 
 
 @dataclass(frozen=True)
@@ -168,7 +204,9 @@ class PoseResult:
             return [t.ids[k] for k in np.flatnonzero(~t.used)]
         return [o.id for o in t if not o.used]
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self, targets: bool = True) -> dict[str, Any]:
+        """The wire form (DESIGN section 4); ``targets=False`` leaves the target list out (the
+        caller encodes it, e.g. as :meth:`TargetTable.to_json`'s text)."""
         # the per-frame hot path: builtin round on the floats, one small dict per target
         T = np.round(np.asarray(self.T_field_camera, dtype=np.float64), 9).tolist()
         return {
@@ -181,7 +219,12 @@ class PoseResult:
             "n_coded": self.n_coded,
             "n_uncoded": self.n_uncoded,
             "rejected": self.rejected_ids,
-            "targets": self.targets.to_list()
+            **({} if not targets else {"targets": self._target_list()}),
+        }
+
+    def _target_list(self) -> list[dict[str, Any]]:
+        return (
+            self.targets.to_list()
             if isinstance(self.targets, TargetTable)
             else [
                 {
@@ -191,5 +234,5 @@ class PoseResult:
                     **({} if t.used else {"rejected": True}),
                 }
                 for t in self.targets
-            ],
-        }
+            ]
+        )

@@ -106,3 +106,23 @@ def test_a_measurement_cannot_be_changed():
     m = _frame(_pose())
     with pytest.raises(AttributeError):
         m.camera = "other"  # type: ignore[misc]
+
+
+def test_the_target_tables_json_is_the_text_of_its_list():
+    import orjson
+
+    from service.core.results import TargetTable
+
+    table = TargetTable(
+        ("1", 'odd "id"', "U7"),
+        np.array([[10.123456, 20.0], [1e-9, -3.00005], [np.nan, 4.0]]),
+        np.array([[0.01, -0.02], [np.inf, 0.0], [0.5, 0.25]]),
+        np.array([True, True, False]),
+        np.array([True, False, True]),
+    )
+    assert table.to_json() == orjson.dumps(table.to_list()).decode()
+    parsed = orjson.loads(table.to_json())
+    assert parsed[1]["rejected"] is True and "rejected" not in parsed[0]
+    assert parsed[2]["uv"][0] is None and parsed[1]["residual_px"][0] is None  # no JSON for NaN, inf
+    empty = TargetTable((), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0, bool))
+    assert empty.to_json() == "[]"
