@@ -34,7 +34,19 @@ from fastapi.staticfiles import StaticFiles
 
 from api import docs, errors, plant
 from api.middleware import EdgeGuard, EdgeRules
-from api.routes import calibration, camera_calibration, compensate, config, data, handeye, health, measure, sim, tests
+from api.routes import (
+    calibration,
+    camera_calibration,
+    compensate,
+    config,
+    data,
+    handeye,
+    health,
+    measure,
+    robot_calibration,
+    sim,
+    tests,
+)
 from api.security import resolve_token
 from api.ws import Hub
 from service.runtime.worker import Worker
@@ -108,8 +120,9 @@ def create_app(settings: Settings) -> FastAPI:
         app.add_middleware(
             CORSMiddleware, allow_origins=settings.server.cors_origins, allow_methods=["*"], allow_headers=["*"]
         )
-    # the hand-eye session routes come before /calibration/{kind} so that their paths win
-    for module in (health, measure, data, config, handeye, camera_calibration, calibration, sim, tests, compensate):
+    # the hand-eye and robot session routes come before /calibration/{kind} so that their paths win
+    routers = (health, measure, data, config, handeye, camera_calibration, robot_calibration, calibration, sim, tests)
+    for module in (*routers, compensate):
         app.include_router(module.router)
     docs.install(app)
     if STATIC.is_dir():

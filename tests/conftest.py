@@ -38,6 +38,7 @@ SLOW_MODULES = (
     "tests/test_ur5_laser_tracker.py",
     "tests/test_ur5_compensation.py",
     "tests/api/test_compensate_api.py",
+    "tests/api/test_robot_calibration.py",
     "tests/test_real_panel.py",
     "tests/test_dbat_reference.py",
 )

@@ -26,6 +26,7 @@ class Kind(StrEnum):
     field = "field"
     handeye = "handeye"
     rig = "rig"
+    robot = "robot"
 
 
 @router.get("", summary="Which calibrations are loaded, their versions and sources")
@@ -33,7 +34,7 @@ def get_summary(worker: WorkerDep) -> dict[str, Any]:
     return worker.calibration.summary()
 
 
-@router.get("/{kind}", summary="The current calibration file (camera.json, field.json, handeye.json)")
+@router.get("/{kind}", summary="The current calibration file (camera, field, handeye, rig or robot .json)")
 def get_calibration(kind: Kind, worker: WorkerDep) -> Any:
     try:
         return worker.calibration.payload(kind)

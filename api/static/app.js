@@ -268,7 +268,9 @@
   }
 
   const CALIB_LABELS = { camera: "Camera (interior)", field: "Field (targets)", handeye: "Hand-eye",
-                         rig: "Rig (relative orientation)" };
+                         rig: "Rig (relative orientation)", robot: "Robot model (kinematics)" };
+  // not needed to measure: without one the controller's nominal model stands
+  const OPTIONAL_CALIB = { robot: "none: the nominal model (the robot calibration session makes one)" };
 
   function renderCalibration(cal) {
     // a rig calibration matters only with two or more cameras
@@ -276,10 +278,12 @@
     const entries = Object.entries(cal).filter(([kind, c]) => kind !== "rig" || nCameras > 1 || (c && c.present));
     const rows = entries.map(([kind, c]) => {
       const missing = !c || !c.present;
-      return el("tr", { class: missing ? "missing" : null, "data-kind": kind },
+      const optional = missing && kind in OPTIONAL_CALIB;
+      return el("tr", { class: optional ? "optional" : missing ? "missing" : null, "data-kind": kind },
         el("td", { text: CALIB_LABELS[kind] || kind }),
-        el("td", { text: missing ? "missing" : `v${c.version}` }),
-        el("td", { text: missing ? `not loaded: upload it (PUT /calibration/${kind})` : c.source || "–" }));
+        el("td", { text: optional ? "–" : missing ? "missing" : `v${c.version}` }),
+        el("td", { text: optional ? OPTIONAL_CALIB[kind]
+                         : missing ? `not loaded: upload it (PUT /calibration/${kind})` : c.source || "–" }));
     });
     $("calibration").tBodies[0].replaceChildren(...rows);
   }

@@ -1,5 +1,9 @@
 """What the worker currently measures with: camera model, field, hand-eye; versioned and swappable.
 
+It also holds the corrected robot model (kind ``robot``, the ``m.json`` of ``posecell calibrate
+robot`` or of the service's robot calibration session), which the measurement does not use: a
+new one does not make the processors rebuild their measurers.
+
 Sources, in order: the calibration store (the versions the service saved), the
 files named in the configuration (imported into the store at the first start),
 and, for the simulated cell, the simulation's own camera and field. A change
@@ -22,8 +26,10 @@ from service.core.targets.field import Field
 from service.settings import Settings
 from service.store import formats
 from service.store.calibrations import CalibrationError
+from service.store.robot_model import RobotModelFile, robot_model_from_json
 
-KINDS = ("camera", "field", "handeye", "rig")
+KINDS = ("camera", "field", "handeye", "rig", "robot")
+MEASURING_KINDS = ("camera", "field", "handeye", "rig")  # a change of these rebuilds the measurers
 
 
 @dataclass(frozen=True)
@@ -50,6 +56,8 @@ def validate(kind: str, data: Any) -> Any:
         return HandEye(X, Z)
     if kind == "rig":
         return formats.rig_from_json(data, "rig.json")
+    if kind == "robot":
+        return robot_model_from_json(data, "robot.json")
     raise formats.FormatError(f"unknown calibration kind {kind!r}; one of {KINDS}")
 
 
@@ -62,6 +70,8 @@ class CalibrationState:
         self.field: Field | None = None
         self.handeye: HandEye | None = None
         self.rig: Rig | None = None
+        self.robot: RobotModelFile | None = None
+        self._robot_payload: dict[str, Any] | None = None  # what was put, for a download without a store
         self.versions: dict[str, int | None] = dict.fromkeys(KINDS)
         self.sources: dict[str, str] = dict.fromkeys(KINDS, "missing")
         self._load(settings, cell)
@@ -72,6 +82,7 @@ class CalibrationState:
             "field": settings.calibration.field_file,
             "handeye": settings.calibration.handeye_file,
             "rig": settings.calibration.rig_file,
+            "robot": None,  # only the store: a model comes from a session or an upload
         }
         sim = cell.defaults() if cell is not None and cell.active else {}
         for kind in KINDS:
@@ -98,7 +109,8 @@ class CalibrationState:
             setattr(self, kind, obj)
             self.versions[kind] = version
             self.sources[kind] = source
-            self.generation += 1
+            if kind in MEASURING_KINDS:
+                self.generation += 1
 
     def update(self, kind: str, data: Any, note: str = "") -> int | None:
         """Validate, store (versioned, atomic) and use a new calibration; returns its version.
@@ -111,6 +123,8 @@ class CalibrationState:
             version = self._store.put(kind, data, note=note) if self._store is not None else None
         except CalibrationError as e:  # the store's input checks (its disk errors are OSError)
             raise formats.FormatError(f"{kind}.json: {e}") from None
+        if kind == "robot":
+            self._robot_payload = dict(data)
         self._set(kind, obj, version, "store" if self._store is not None else "memory")
         return version
 
@@ -134,6 +148,8 @@ class CalibrationState:
             }
         if kind == "field":
             return formats.field_to_json(obj)
+        if kind == "robot":
+            return self._robot_payload
         return {"T_flange_camera": obj.T_flange_camera.tolist(), "T_base_field": obj.T_base_field.tolist()}
 
     def summary(self) -> dict[str, Any]:

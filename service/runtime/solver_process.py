@@ -30,7 +30,8 @@ def _warm_up() -> None:
     """Imported in the child at start, so that the first solve is as fast as the next."""
     import service.core.calib.bundle
     import service.core.calib.handeye_images
-    import service.runtime.handeye_session  # noqa: F401
+    import service.runtime.handeye_session
+    import service.runtime.robot_solve  # noqa: F401
 
 
 class SolverProcess:

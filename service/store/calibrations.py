@@ -1,4 +1,4 @@
-"""Versioned calibration files (camera, field, hand-eye, rig), written atomically.
+"""Versioned calibration files (camera, field, hand-eye, rig, robot model), written atomically.
 
 Layout of the store's directory::
 
@@ -52,6 +52,7 @@ class CalibrationKind(StrEnum):
     field = "field"
     handeye = "handeye"
     rig = "rig"
+    robot = "robot"  # the corrected kinematic model (m.json schema 2, service.store.robot_model)
 
 
 class CalibrationError(Exception):

@@ -58,8 +58,9 @@ def test_compensate_refuses_bad_requests_with_a_sentence(live, case):
     far = [dict(targets[0]), {**targets[1], "x_mm": 2500.0, "y_mm": 0.0, "z_mm": 400.0}]
     missing_rz = [{k: v for k, v in targets[1].items() if k != "rz"}]
     with live.client() as c:
-        r = c.post("/compensate", json={"targets": targets})
-        assert r.status_code == 422 and "send the corrected robot model" in r.json()["message"]
+        r = c.post("/compensate", json={"targets": targets})  # nothing stored in this server
+        assert r.status_code == 409 and r.json()["reason"] == "not_calibrated", r.text
+        assert r.json()["message"].startswith("no robot model is stored: run the robot calibration session")
         r = c.post("/compensate", json={"targets": far, "model": model})
         assert r.status_code == 422, r.text
         assert r.json()["message"].startswith("target 2 is out of reach of the corrected model: the nearest pose is")
@@ -71,3 +72,27 @@ def test_compensate_refuses_bad_requests_with_a_sentence(live, case):
         partial = [{**targets[1], "seed_joint_1": 5.0}]
         r = c.post("/compensate", json={"targets": partial, "model": model})
         assert r.status_code == 422 and "but not seed_joint_2" in r.json()["message"]
+
+
+def test_a_stored_robot_model_is_versioned_validated_and_used_when_the_body_has_none(live, case):
+    corrected, _, T, targets, model = case
+    with live.client() as c:
+        assert c.get("/calibration/robot").status_code == 404
+        r = c.put("/calibration/robot", json={**model, "model": {**model["model"], "a_mm": [0.0] * 5}})
+        assert r.status_code == 422 and "model.a_mm must be a list of 6 numbers" in r.json()["message"]
+        assert c.get("/calibration/robot/versions").json() == []  # nothing of the refused one stored
+        v1 = c.put("/calibration/robot", json=model, params={"note": "first"}).json()["version"]
+        other = {**model, "model": {**model["model"], "a_mm": (np.array(model["model"]["a_mm"]) + 5.0).tolist()}}
+        v2 = c.put("/calibration/robot", json=other).json()["version"]
+        assert v2 == v1 + 1 and c.get("/calibration/robot").json()["model"]["a_mm"] == other["model"]["a_mm"]
+        assert c.get("/calibration").json()["robot"] == {"present": True, "version": v2, "source": "store"}
+        v3 = c.post(f"/calibration/robot/rollback/{v1}").json()["version"]
+        assert c.get("/calibration/robot").json()["model"]["a_mm"] == model["model"]["a_mm"]
+        versions = c.get("/calibration/robot/versions").json()
+        assert [v["version"] for v in versions] == [v1, v2, v3] and versions[-1]["current"]
+        r = c.post("/compensate", json={"targets": targets})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["model_source"] == "stored" and body["model_version"] == v3
+    q = np.radians([[row[f"joint_{i}"] for i in range(1, 7)] for row in body["commands"]])
+    assert np.abs(corrected.fk(q)[:, :3, 3] - T[:, :3, 3]).max() < 1e-3  # the rolled-back (v1) model's joints

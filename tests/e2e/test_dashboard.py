@@ -261,8 +261,14 @@ def test_status_bar_and_device_cards_show_ok_once_the_cell_runs(page: Page) -> N
     assert page.text("#robot-card .state") == "ok"
     rows = page.js("""[...document.querySelectorAll('#calibration tbody tr')].map(
         r => [r.dataset.kind, r.className, r.cells[1].textContent, r.cells[2].textContent])""")
-    assert sorted(r[0] for r in rows) == ["camera", "field", "handeye"]
-    assert all(cls == "" and version.startswith("v") and source for _, cls, version, source in rows), rows
+    assert sorted(r[0] for r in rows) == ["camera", "field", "handeye", "robot"]
+    needed = [r for r in rows if r[0] != "robot"]
+    assert all(cls == "" and version.startswith("v") and source for _, cls, version, source in needed), rows
+    # no robot model stored: optional, the nominal model stands (not shown as missing)
+    assert [r[1:] for r in rows if r[0] == "robot"] == [
+        ["optional", "–", page.text('[data-kind="robot"] td:last-child')]
+    ]
+    assert "nominal model" in page.text('[data-kind="robot"] td:last-child')
     page.wait("document.getElementById('ws-state').textContent === 'live'", "the live stream")
     page.wait("/^\\d+\\.\\d fps$/.test(document.getElementById('fps').textContent)", "a frame rate")
     page.wait("/ms/.test(document.getElementById('latency').textContent)", "a latency")

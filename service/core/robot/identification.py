@@ -520,3 +520,88 @@ def identify_kinematics(
         parameterisation=parameterisation,
         condition=float(s_J[0] / s_J[-1]),
     )
+
+
+@dataclass(frozen=True)
+class Observability:
+    """What a set of configurations lets :func:`identify_kinematics` see (its defaults: base and tool estimated).
+
+    Attributes
+    ----------
+    names : tuple of str
+        The parameters the data determine (to be identified).
+    structural : tuple of str
+        Frozen whatever the data: redundant in the model itself (see the module docstring).
+    blind : tuple of str
+        Structurally identifiable, but these configurations cannot separate them from the others.
+    condition : float
+        Condition number of the column-normalised Jacobian of ``names`` (large: nearly redundant).
+    rank : int
+        Numerical rank of that Jacobian over every structurally identifiable parameter.
+    """
+
+    names: tuple[str, ...]
+    structural: tuple[str, ...]
+    blind: tuple[str, ...]
+    condition: float
+    rank: int
+
+
+def _pose_problem(
+    nominal: KinematicModel, with_orientation: bool, parameterisation: str
+) -> tuple[_Layout, tuple[str, ...]]:
+    """The layout of :func:`identify_kinematics` (base and tool estimated, nothing fixed by the caller) after
+    its structural freezing, and the names frozen that way."""
+    if parameterisation not in PARAMETERISATIONS:
+        raise ValueError(f"parameterisation must be one of {PARAMETERISATIONS}, got {parameterisation!r}")
+    link_names = dh_parameter_names() if parameterisation == "dh" else hayati_parameter_names(nominal)
+    replaced = {f"d{i}" for i in near_parallel_links(nominal)} if parameterisation == "hayati" else set()
+    tool = TOOL_NAMES if with_orientation else TOOL_NAMES[:3]
+    order = [*BASE_NAMES, *tool, *link_names]
+    layout = _Layout(nominal, tuple(order), np.array([n not in replaced for n in order]), with_orientation, np.zeros(3))
+    q_s = _structure_configs(nominal)
+    cand = np.flatnonzero(layout.free)
+    J_s = _jacobian(layout, np.zeros(len(order)), q_s, layout.observe(nominal, q_s), ANGLE_SCALE_MM, cand)
+    dep, _ = _dependent_columns(J_s, RANK_TOL)
+    structural = tuple(n for n in order if n in replaced) + tuple(order[cand[j]] for j in dep)
+    free = layout.free.copy()
+    free[cand[dep]] = False
+    return replace(layout, free=free), structural
+
+
+def pose_jacobian(
+    nominal: KinematicModel, q_rad: ArrayLike, parameterisation: str = "hayati"
+) -> tuple[Array, tuple[str, ...]]:
+    """Jacobian (6M, P) of measured flange poses (mm, rad x ANGLE_SCALE_MM) w.r.t. the structurally identifiable
+    errors at zero error, internal units, and those P names: for planning configurations that see them."""
+    q = np.asarray(q_rad, dtype=np.float64).reshape(-1, 6)
+    layout, _ = _pose_problem(nominal, True, parameterisation)
+    cols = np.flatnonzero(layout.free)
+    obs = layout.observe(nominal, q)
+    J = _jacobian(layout, np.zeros(len(layout.names)), q, obs, ANGLE_SCALE_MM, cols)
+    return J, tuple(layout.names[c] for c in cols)
+
+
+def observability(
+    nominal: KinematicModel, q_rad: ArrayLike, with_orientation: bool = True, parameterisation: str = "hayati"
+) -> Observability:
+    """Which errors the configurations ``q_rad`` (M, 6) rad determine, measured as poses (or positions).
+
+    The same test :func:`identify_kinematics` applies before it solves, without solving: a plan can be
+    judged before the robot moves, and the blind parameters passed to it as ``fixed``.
+    """
+    q = np.asarray(q_rad, dtype=np.float64).reshape(-1, 6)
+    layout, structural = _pose_problem(nominal, with_orientation, parameterisation)
+    cols = np.flatnonzero(layout.free)
+    J = _jacobian(layout, np.zeros(len(layout.names)), q, layout.observe(nominal, q), ANGLE_SCALE_MM, cols)
+    dep, rank = _dependent_columns(J, DATA_RANK_TOL)
+    keep = np.setdiff1d(np.arange(cols.size), dep)
+    Jk = J[:, keep]
+    s = np.linalg.svd(Jk / np.where((nrm := np.linalg.norm(Jk, axis=0)) > 0, nrm, 1.0), compute_uv=False)
+    return Observability(
+        names=tuple(layout.names[cols[j]] for j in keep),
+        structural=structural,
+        blind=tuple(layout.names[cols[j]] for j in dep),
+        condition=float(s[0] / s[-1]) if s.size and s[-1] > 0 else float("inf"),
+        rank=rank,
+    )

@@ -1,0 +1,619 @@
+"""The robot calibration session in the service: plan, visit, record at rest, identify, validate, store; verify.
+
+1. ``start``: plan ``n_poses`` views of the field spread over the joint space (D-optimal among
+   reachable candidates, :mod:`service.core.robot.calibration_plan`) and ``n_holdout`` random
+   others for validation, and report the plan's observability (the identification Jacobian's
+   condition, the parameters frozen because the model or these poses cannot separate them).
+   Planning runs in the solver process.
+2. The arm visits each pose: mode ``program`` (the simulated cell only) moves it (``move`` one
+   pose, or ``run`` all of them in a thread with progress, then solves); mode ``record``: the
+   integrator's program moves a real robot, and ``capture`` is called at each resting pose.
+   A sample is taken at rest only: the reported flange's mean over the first and over the last
+   third of 0.3 s within 0.05 mm / 0.01°. It averages ``frames`` measured frames: the measured
+   flange pose (camera + hand-eye), the reported one, and the joints at each exposure (the mean
+   of the controller's samples within ±0.1 s of it, refused if they spread by more than 1e-4 rad:
+   at rest they agree to the encoder noise, so no interpolation is needed), with the σ of the mean.
+3. ``solve`` (solver process): Hayati-β identification of positions and orientations from the
+   calibration samples, before/after on the hold-out samples (nominal vs measured, corrected
+   vs measured); ``save`` stores the model versioned as calibration kind ``robot``.
+
+:func:`verify` re-visits stored poses (or, in record mode, measures where the robot rests) and
+reports the drift of the measured flange from what the stored model predicts at the joints.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.core.geometry.frames import rotation_angle_deg
+from service.core.geometry.so3 import R_from_rotvec, rotvec_between
+from service.core.measurement import iso_wall
+from service.core.results import PoseResult, Reason
+from service.core.robot.kinematics import nominal_model
+from service.runtime.accuracy_plans import REST_TOL_DEG, REST_TOL_MM, REST_WINDOW_S, flange_sigma
+from service.runtime.handeye_session import SessionError
+from service.runtime.robot_solve import plan_poses, pose_errors, solve_robot
+from service.runtime.solver_process import SolverCrashed
+from service.sim.robot import JointTrajectory
+from service.store.formats import FormatError
+
+log = logging.getLogger(__name__)
+
+JOINT_WINDOW_NS = 100_000_000  # at rest, the controller's samples this close to an exposure give its joints
+JOINT_REST_RAD = 1e-4  # their spread at rest (encoder noise ~1e-5 rad); more: the arm moved
+REST_TIMEOUT_S = 10.0
+RETRIES = 3  # a failed frame of a sample is tried again this often
+RETRY_WAIT_S = 0.3
+FRAME_TIMEOUT_S = 5.0
+JOINT_SPEED_DEG_S = 90.0  # the simulated arm's joint moves
+MIN_POSES = 12  # 6 equations a pose, ~30 parameters, twice as many equations as parameters, and a margin
+
+
+class StartParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    mode: Literal["program", "record"] = Field(
+        "program", description="program: posecell moves the simulated arm; record: the robot's own program runs"
+    )
+    n_poses: int = Field(24, ge=1, le=200, description="calibration poses (at least 12; 24 or more advised)")
+    n_holdout: int = Field(6, ge=0, le=100, description="validation poses, not used in the fit")
+    seed: int = Field(0, ge=0, description="which of the planner's random views")
+    frames_per_pose: int = Field(2, ge=1, le=50, description="frames averaged at each pose")
+    robot: str | None = Field(None, description="the nominal model (kr15, ur10e, ur5); default the simulated cell's")
+    camera: str | None = None
+
+
+class VerifyParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    mode: Literal["program", "record"] = Field(
+        "program", description="program: the simulated arm re-visits stored poses; record: measure where it rests"
+    )
+    n_poses: int = Field(4, ge=1, le=20, description="program mode: stored poses re-visited")
+    frames_per_pose: int = Field(2, ge=1, le=50)
+    threshold_mm: float = Field(0.1, gt=0, le=100, description="largest position drift accepted, mm")
+    threshold_deg: float = Field(0.02, gt=0, le=10, description="largest orientation drift accepted, deg")
+    camera: str | None = None
+
+
+@dataclass
+class RobotSample:
+    pose: int | None  # the planned pose it was taken at, if any
+    holdout: bool
+    q_rad: np.ndarray  # (6,) joints at the exposures, mean
+    T_base_flange_reported: np.ndarray  # (4, 4) mm, mean
+    T_base_flange_measured: np.ndarray  # (4, 4) mm, mean
+    sigma_position_mm: list[float]  # of the mean, base axes
+    sigma_rotation_deg: list[float]
+    n_frames: int
+    t_wall: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "pose": self.pose,
+            "holdout": self.holdout,
+            "joints_deg": np.degrees(self.q_rad).round(6).tolist(),
+            "T_base_flange_reported": self.T_base_flange_reported.tolist(),
+            "T_base_flange_measured": self.T_base_flange_measured.tolist(),
+            "sigma_position_mm": self.sigma_position_mm,
+            "sigma_rotation_deg": self.sigma_rotation_deg,
+            "n_frames": self.n_frames,
+            "t_wall": self.t_wall,
+        }
+
+
+def _mean_T(Ts: list[np.ndarray]) -> np.ndarray:
+    """Mean of nearby poses: positions averaged, rotations averaged in the tangent space of the first."""
+    R0 = Ts[0][:3, :3]
+    w = np.mean([rotvec_between(R0, T[:3, :3]) for T in Ts], axis=0)
+    out = np.eye(4)
+    out[:3, :3] = R0 @ R_from_rotvec(w)
+    out[:3, 3] = np.mean([T[:3, 3] for T in Ts], axis=0)
+    return out
+
+
+def sim_cell(worker: Any) -> Any:
+    """The simulated cell, if this process runs it and its controller (the only robot posecell moves)."""
+    rt, robot = worker.cell, worker.robot
+    if not rt.active or rt.standins or robot is None or not callable(getattr(robot, "move_to", None)):
+        return None
+    return rt.cell
+
+
+def wait_at_rest(worker: Any, cancel: threading.Event | None = None, timeout_s: float = REST_TIMEOUT_S) -> None:
+    """Until the controller reports the flange still (REST_TOL_MM / REST_TOL_DEG over REST_WINDOW_S)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cancel is not None and cancel.is_set():
+            raise SessionError(Reason.not_solved, "cancelled")
+        if at_rest(worker):
+            return
+        time.sleep(0.05)
+    raise SessionError(Reason.robot_moving, f"the robot was not reported at rest within {timeout_s:g} s")
+
+
+def at_rest(worker: Any) -> bool:
+    """Whether the reported flange stood still over the last REST_WINDOW_S.
+
+    The means of the window's first and last thirds are compared, not single samples: at a long
+    lever the encoder noise alone (1e-5 rad, ~0.02 mm) makes two single samples differ by more
+    than REST_TOL_MM now and then, while a move shifts the means at once.
+    """
+    now = time.monotonic_ns()
+    recent = worker.robot.samples_between(now - int(REST_WINDOW_S * 1e9), now)
+    if len(recent) < 6:
+        return False
+    third = len(recent) // 3
+    first, last = recent[:third], recent[-third:]
+    T0 = _mean_T([r.T_base_flange for r in first])
+    T1 = _mean_T([r.T_base_flange for r in last])
+    moved_deg = rotation_angle_deg(T0[:3, :3].T @ T1[:3, :3])
+    return float(np.linalg.norm(T1[:3, 3] - T0[:3, 3])) < REST_TOL_MM and moved_deg < REST_TOL_DEG
+
+
+def move_joints(worker: Any, q_rad: np.ndarray, cancel: threading.Event | None = None) -> float:
+    """Simulated cell only: a joint move (a ``movej``) to ``q_rad`` (6,); returns its duration s once the arm rests.
+
+    A joint move, not a Cartesian one: the planned joints are the configuration the plan's
+    observability was computed for, and the controller's IK from wherever the arm stands may
+    choose another branch.
+    """
+    cell = sim_cell(worker)
+    if cell is None:
+        raise SessionError(
+            Reason.unsupported,
+            "this robot is moved by its own program: send it to the planned joints, then record a sample",
+        )
+    t0 = (time.monotonic_ns() - worker.cell.epoch_ns) * 1e-9 + 0.05
+    q0 = cell.q_at(t0)
+    q1 = np.asarray(q_rad, dtype=np.float64)
+    duration_s = max(float(np.degrees(np.max(np.abs(q1 - q0)))) / JOINT_SPEED_DEG_S, 0.3)
+    cell.command_trajectory(JointTrajectory(np.array([0.0, duration_s]), np.array([q0, q1]), mode="rest"), t0)
+    time.sleep(duration_s + 0.1)
+    wait_at_rest(worker, cancel)
+    return duration_s
+
+
+def _problem(m: Any) -> SessionError | None:
+    """Why a measurement cannot be a sample's frame, or None."""
+    f = m.flange
+    if not m.ok or not isinstance(m.result, PoseResult) or m.t_exposure_host_ns is None:
+        return SessionError(m.reason or Reason.no_frame, m.message or "the frame was not measured")
+    if f is None or f.T_base_flange is None or f.T_base_flange_measured is None:
+        return SessionError(
+            Reason.robot_disconnected, (f.message if f is not None else "") or "no robot pose at the frame"
+        )
+    return None
+
+
+def _next_measurement(worker: Any, camera: str) -> Any:
+    """The next usable frame's measurement. A failed one (a camera stall, a gap in the robot's reports
+    on a busy host, a frame the pipeline could not measure) is tried again up to RETRIES times, as an
+    operator would press again, before it is the sample's failure."""
+    for attempt in range(RETRIES + 1):
+        try:
+            m = worker.request_measurement(camera).result(timeout=FRAME_TIMEOUT_S).result
+        except TimeoutError:
+            raise SessionError(
+                Reason.timeout, f"no frame was measured within {FRAME_TIMEOUT_S:g} s; see /health"
+            ) from None
+        problem = _problem(m)
+        if problem is None:
+            return m
+        if attempt == RETRIES:
+            raise problem
+        time.sleep(RETRY_WAIT_S)
+    raise AssertionError("unreachable")
+
+
+def capture(worker: Any, camera: str, frames: int, pose: int | None = None, holdout: bool = False) -> RobotSample:
+    """One sample at the robot's resting pose: ``frames`` measured frames averaged (module docstring)."""
+    robot = worker.robot
+    if robot is None or not robot.connected:
+        raise SessionError(Reason.robot_disconnected, "the robot is not connected")
+    handeye = worker.calibration.handeye
+    if handeye is None:
+        raise SessionError(Reason.not_calibrated, "the flange is measured through the hand-eye: calibrate it first")
+    if not at_rest(worker):
+        raise SessionError(
+            Reason.robot_moving, f"the robot moved in the last {REST_WINDOW_S} s; record samples at rest"
+        )
+    measured, reported, joints, s_p, s_r = [], [], [], [], []
+    for _ in range(frames):
+        m = _next_measurement(worker, camera)
+        f = m.flange
+        t = int(m.t_exposure_host_ns)
+        near = robot.samples_between(t - JOINT_WINDOW_NS, t + JOINT_WINDOW_NS)
+        if not near:
+            raise SessionError(Reason.robot_disconnected, "no joint sample of the robot near the exposure")
+        q = np.array([s.q_rad for s in near], dtype=np.float64)
+        if float(np.max(np.ptp(q, axis=0))) > JOINT_REST_RAD:
+            raise SessionError(Reason.robot_moving, "the joints moved during the exposure; record samples at rest")
+        joints.append(q.mean(axis=0))
+        measured.append(f.T_base_flange_measured)
+        reported.append(f.T_base_flange)
+        sp, sr = flange_sigma(
+            m.result.T_field_camera,
+            m.result.sigma_position_mm,
+            m.result.sigma_rotation_deg,
+            handeye.T_flange_camera,
+            handeye.T_base_field,
+        )
+        s_p.append(sp)
+        s_r.append(sr)
+    k = np.sqrt(frames)  # σ of the mean of independent frames
+    return RobotSample(
+        pose=pose,
+        holdout=holdout,
+        q_rad=np.mean(joints, axis=0),
+        T_base_flange_reported=_mean_T(reported),
+        T_base_flange_measured=_mean_T(measured),
+        sigma_position_mm=(np.mean(s_p, axis=0) / k).round(5).tolist(),
+        sigma_rotation_deg=(np.mean(s_r, axis=0) / k).round(6).tolist(),
+        n_frames=frames,
+        t_wall=iso_wall(time.time_ns()),
+    )
+
+
+@dataclass
+class RobotSession:
+    params: StartParams
+    camera: str
+    robot: str
+    T_base_flange: np.ndarray  # (n, 4, 4) mm, planned; the last n_holdout are validation poses
+    q_rad: np.ndarray  # (n, 6) nominal joints there
+    observability: dict[str, Any]
+    n_candidates: int
+    samples: list[RobotSample] = field(default_factory=list)
+    result: dict[str, Any] | None = None
+    saved_version: int | None = None
+    status: str = "planned"  # planned | running | solving | solved | failed | cancelled
+    progress: float = 0.0
+    message: str = "planned: move to the poses and record a sample at each"
+    error: str | None = None
+    skipped: list[dict[str, Any]] = field(default_factory=list)  # poses of a run that could not be measured
+    created_wall: str = field(default_factory=lambda: iso_wall(time.time_ns()))
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    cancel: threading.Event = field(default_factory=threading.Event, repr=False)
+    thread: threading.Thread | None = None
+
+    @property
+    def n_poses(self) -> int:
+        return self.params.n_poses
+
+    def is_holdout(self, pose: int | None) -> bool:
+        return pose is not None and pose >= self.n_poses
+
+    def summary(self) -> dict[str, Any]:
+        with self.lock:
+            samples = list(self.samples)
+        proposals = [
+            {
+                "pose": k,
+                "holdout": self.is_holdout(k),
+                "T_base_flange": T.tolist(),
+                "joints_deg": np.degrees(q).round(4).tolist(),
+                "recorded": any(s.pose == k for s in samples),
+            }
+            for k, (T, q) in enumerate(zip(self.T_base_flange, self.q_rad, strict=True))
+        ]
+        return {
+            "mode": self.params.mode,
+            "robot": self.robot,
+            "camera": self.camera,
+            "created": self.created_wall,
+            "status": self.status,
+            "progress": round(self.progress, 4),
+            "progress_message": self.message,
+            "error": self.error,
+            "n_poses": self.n_poses,
+            "n_holdout": self.params.n_holdout,
+            "n_candidates": self.n_candidates,
+            "observability": self.observability,
+            "proposals": proposals,
+            "skipped": list(self.skipped),
+            "n_samples": len(samples),
+            "samples": [s.to_dict() for s in samples],
+            "result": None if self.result is None else {k: v for k, v in self.result.items() if k != "model_file"},
+            "saved_version": self.saved_version,
+        }
+
+
+class RobotCalibration:
+    """The one robot calibration session of ``worker``'s cell, and the verification against the stored model."""
+
+    def __init__(self, worker: Any) -> None:
+        self.worker = worker
+        self.session: RobotSession | None = None
+        self._busy = threading.Lock()  # one thing moves the arm or solves at a time
+
+    # --- start ---------------------------------------------------------------------------------
+
+    def start(self, body: dict[str, Any] | None) -> RobotSession:
+        p = StartParams.model_validate(body or {})
+        w = self.worker
+        cal = w.calibration
+        if cal.camera is None or cal.field is None or cal.handeye is None:
+            raise SessionError(
+                Reason.not_calibrated, "the session measures the flange: camera, field and hand-eye calibrations first"
+            )
+        camera = p.camera or next(iter(w.processors), None)
+        if camera is None or camera not in w.processors:
+            raise SessionError(Reason.not_found, f"no camera named {camera!r}")
+        cell = sim_cell(w)
+        if p.mode == "program" and cell is None:
+            raise SessionError(
+                Reason.unsupported,
+                "mode 'program' moves the arm, which posecell does only in the simulated cell; "
+                "with a real robot use mode 'record' and move it with its own program",
+            )
+        robot = p.robot or (w.cell.cell.config.robot if w.cell.active else None)
+        if robot is None:
+            raise SessionError(Reason.bad_input, "name the robot's nominal model ('robot': kr15, ur10e or ur5)")
+        try:
+            nominal = nominal_model(robot)
+        except ValueError as e:
+            raise SessionError(Reason.bad_input, str(e)) from None
+        if p.n_poses < MIN_POSES:
+            raise SessionError(
+                Reason.poor_motion,
+                f"{p.n_poses} poses cannot determine the arm's ~30 kinematic errors (6 equations a pose, twice as "
+                f"many equations as parameters needed): plan at least {MIN_POSES}, 24 or more advised",
+            )
+        if w.robot is None or not w.robot.connected:
+            raise SessionError(Reason.robot_disconnected, "the robot is not connected: its joints seed the plan")
+        q_seed = w.robot.latest().q_rad
+        if not self._busy.acquire(blocking=False):
+            raise SessionError(Reason.busy, "the robot calibration is moving the arm or solving; wait for it")
+        try:
+            plan = w.solver.run(
+                plan_poses,
+                nominal,
+                cal.camera,
+                cal.field,
+                cal.handeye.T_base_field,
+                cal.handeye.T_flange_camera,
+                np.asarray(q_seed, dtype=np.float64),
+                p.n_poses,
+                p.n_holdout,
+                p.seed,
+            )
+        except SolverCrashed as e:
+            raise SessionError(Reason.solver_unavailable, f"{e}; start the session again") from None
+        finally:
+            self._busy.release()
+        self.session = RobotSession(
+            p, camera, robot, plan["T_base_flange"], plan["q_rad"], plan["observability"], plan["n_candidates"]
+        )
+        w.event("info", "robot_calibration", f"robot calibration session planned: {p.n_poses} + {p.n_holdout} poses")
+        return self.session
+
+    def get(self) -> RobotSession:
+        if self.session is None:
+            raise SessionError(
+                Reason.not_found, "no robot calibration session; start one with POST /calibration/robot/session"
+            )
+        return self.session
+
+    def discard(self) -> None:
+        s = self.session
+        if s is not None and s.thread is not None:
+            s.cancel.set()
+            s.thread.join(timeout=30.0)
+        self.session = None
+
+    # --- visiting and recording ------------------------------------------------------------------
+
+    def _move(self, s: RobotSession, k: int, cancel: threading.Event | None = None) -> float:
+        if not 0 <= k < len(s.T_base_flange):
+            raise SessionError(Reason.not_found, f"no pose #{k}; the plan has {len(s.T_base_flange)}")
+        return move_joints(self.worker, s.q_rad[k], cancel)
+
+    def _exclusive(self, s: RobotSession) -> None:
+        if s.status in ("running", "solving") or not self._busy.acquire(blocking=False):
+            raise SessionError(Reason.busy, "the robot calibration is moving the arm or solving; wait for it")
+
+    def move(self, k: int) -> float:
+        s = self.get()
+        self._exclusive(s)
+        try:
+            return self._move(s, k)
+        finally:
+            self._busy.release()
+
+    def capture(self, pose: int | None) -> RobotSample:
+        s = self.get()
+        if pose is not None and not 0 <= pose < len(s.T_base_flange):
+            raise SessionError(Reason.not_found, f"no pose #{pose}; the plan has {len(s.T_base_flange)}")
+        self._exclusive(s)
+        try:
+            sample = capture(self.worker, s.camera, s.params.frames_per_pose, pose, s.is_holdout(pose))
+        finally:
+            self._busy.release()
+        with s.lock:
+            s.samples = [x for x in s.samples if pose is None or x.pose != pose] + [sample]
+            s.result = None
+        return sample
+
+    def remove(self, index: int) -> None:
+        s = self.get()
+        with s.lock:
+            if not 0 <= index < len(s.samples):
+                raise SessionError(Reason.not_found, f"no sample #{index}; there are {len(s.samples)}")
+            del s.samples[index]
+            s.result = None
+
+    # --- solving and storing -------------------------------------------------------------------------
+
+    def _solve(self, s: RobotSession) -> dict[str, Any]:
+        with s.lock:
+            samples = list(s.samples)
+        if not samples:
+            raise SessionError(
+                Reason.poor_motion, "no samples are recorded yet: record a sample at each planned pose first"
+            )
+        q = np.array([x.q_rad for x in samples])
+        T = np.array([x.T_base_flange_measured for x in samples])
+        holdout = np.array([x.holdout for x in samples])
+        sp = float(np.median([np.linalg.norm(x.sigma_position_mm) for x in samples]))
+        sr = float(np.median([np.linalg.norm(x.sigma_rotation_deg) for x in samples]))
+        try:
+            out: dict[str, Any] = self.worker.solver.run(
+                solve_robot, s.robot, nominal_model(s.robot), q, T, holdout, sp, sr
+            )
+        except SolverCrashed as e:
+            raise SessionError(Reason.solver_unavailable, f"{e}; the samples are kept, solve again") from None
+        with s.lock:
+            s.result = out
+        return out
+
+    def solve(self) -> dict[str, Any]:
+        s = self.get()
+        self._exclusive(s)
+        try:
+            out = self._solve(s)
+            s.status, s.message, s.error = "solved", "solved: save it to use it", None
+        finally:
+            self._busy.release()
+        return {k: v for k, v in out.items() if k != "model_file"}
+
+    def save(self, note: str = "") -> int | None:
+        s = self.get()
+        if s.result is None:
+            raise SessionError(Reason.not_solved, "solve the session before saving its model")
+        payload = {**s.result["model_file"], "note": note or f"robot calibration session of {s.created_wall}"}
+        try:
+            version = self.worker.calibration.update("robot", payload, note=payload["note"][:1000])
+        except FormatError as e:
+            raise SessionError(Reason.bad_input, f"the identified model is not stored: {e}") from None
+        s.saved_version = version
+        self.worker.event("info", "calibration_changed", f"robot model version {version} from a calibration session")
+        return version
+
+    # --- the simulated cell's one call -----------------------------------------------------------------
+
+    def run(self) -> RobotSession:
+        """Program mode: visit every planned pose, record, solve; in a thread, with progress."""
+        s = self.get()
+        if s.params.mode != "program":
+            raise SessionError(
+                Reason.unsupported, "run is for mode 'program' (the simulated cell); record samples instead"
+            )
+        self._exclusive(s)
+        s.status, s.progress, s.error = "running", 0.0, None
+        s.cancel.clear()
+        s.thread = threading.Thread(target=self._run, args=(s,), name="robot-calibration", daemon=True)
+        s.thread.start()
+        return s
+
+    def _run(self, s: RobotSession) -> None:
+        try:
+            n = len(s.T_base_flange)
+            for k in range(n):
+                s.progress, s.message = k / (n + 1), f"pose {k + 1} of {n}{' (hold-out)' if s.is_holdout(k) else ''}"
+                self._move(s, k, s.cancel)
+                try:
+                    sample = capture(self.worker, s.camera, s.params.frames_per_pose, k, s.is_holdout(k))
+                except SessionError as e:  # one pose that cannot be measured does not end the session:
+                    # it is named, and the solve refuses if too few are left
+                    s.skipped.append({"pose": k, "reason": str(e.reason), "message": e.message})
+                    continue
+                with s.lock:
+                    s.samples = [x for x in s.samples if x.pose != k] + [sample]
+            s.status, s.progress, s.message = "solving", n / (n + 1), "identifying the kinematic errors"
+            self._solve(s)
+            s.status, s.progress, s.message = "solved", 1.0, "solved: save it to use it"
+        except SessionError as e:
+            cancelled = s.cancel.is_set()
+            s.status = "cancelled" if cancelled else "failed"
+            s.error = None if cancelled else e.message
+            s.message = s.status if cancelled else f"failed: {e.message}"
+        except Exception as e:  # a bug must not leave the session "running"
+            log.exception("robot calibration run")
+            s.status, s.error, s.message = "failed", f"internal error: {e!r}", "failed"
+        finally:
+            self._busy.release()
+
+    # --- verification --------------------------------------------------------------------------------
+
+    def verify(self, body: dict[str, Any] | None) -> dict[str, Any]:
+        p = VerifyParams.model_validate(body or {})
+        w = self.worker
+        model = w.calibration.robot
+        if model is None:
+            raise SessionError(
+                Reason.not_calibrated,
+                "no robot model is stored to verify: run the robot calibration session and save it first",
+            )
+        camera = p.camera or next(iter(w.processors), None)
+        if camera is None or camera not in w.processors:
+            raise SessionError(Reason.not_found, f"no camera named {camera!r}")
+        if p.mode == "program" and sim_cell(w) is None:
+            raise SessionError(
+                Reason.unsupported,
+                "mode 'program' moves the arm, which posecell does only in the simulated cell; with a real robot "
+                "stop it at a stored pose (or any pose) and verify with mode 'record'",
+            )
+        stored = [
+            np.asarray(x["q_rad"], dtype=np.float64) for x in (w.calibration.payload("robot") or {}).get("poses", [])
+        ]
+        if p.mode == "program" and not stored:
+            raise SessionError(
+                Reason.bad_input, "the stored robot model carries no poses to re-visit (not from a session)"
+            )
+        picks = (
+            np.unique(np.linspace(0, len(stored) - 1, min(p.n_poses, len(stored))).round().astype(int))
+            if stored
+            else []
+        )
+        if not self._busy.acquire(blocking=False):
+            raise SessionError(Reason.busy, "the robot calibration is moving the arm or solving; wait for it")
+        samples: list[tuple[int | None, RobotSample]] = []
+        try:
+            if p.mode == "record":
+                samples.append((None, capture(w, camera, p.frames_per_pose)))
+            else:
+                for k in picks:
+                    move_joints(w, stored[int(k)])
+                    samples.append((int(k), capture(w, camera, p.frames_per_pose)))
+        finally:
+            self._busy.release()
+        q = np.array([x.q_rad for _, x in samples])
+        T_meas = np.array([x.T_base_flange_measured for _, x in samples])
+        drift = pose_errors(model.corrected.fk(q), T_meas)
+        nominal_err = pose_errors(model.nominal.fk(q), T_meas)
+        ok = drift["position_max_mm"] <= p.threshold_mm and drift["orientation_max_deg"] <= p.threshold_deg
+        poses = [
+            {
+                "stored_pose": k,
+                "position_mm": dp,
+                "orientation_deg": dr,
+                "joints_deg": np.degrees(x.q_rad).round(4).tolist(),
+            }
+            for (k, x), dp, dr in zip(samples, drift["per_pose_mm"], drift["per_pose_deg"], strict=True)
+        ]
+        verdict = "ok" if ok else "drifted"
+        w.event(
+            "info" if ok else "warning",
+            "robot_verify",
+            f"robot model version {w.calibration.versions.get('robot')} verified: {verdict}, "
+            f"drift {drift['position_max_mm']:.3f} mm / {drift['orientation_max_deg']:.4f} deg at most",
+        )
+        return {
+            "ok": True,
+            "verdict": verdict,
+            "model_version": w.calibration.versions.get("robot"),
+            "threshold_mm": p.threshold_mm,
+            "threshold_deg": p.threshold_deg,
+            "drift": {k: v for k, v in drift.items() if not k.startswith("per_pose")},
+            "nominal": {k: v for k, v in nominal_err.items() if not k.startswith("per_pose")},
+            "poses": poses,
+        }
+
+    def close(self) -> None:
+        self.discard()
