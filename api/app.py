@@ -122,6 +122,7 @@ def create_app(settings: Settings) -> FastAPI:
         )
     # the hand-eye and robot session routes come before /calibration/{kind} so that their paths win
     routers = (health, measure, data, config, handeye, camera_calibration, robot_calibration, calibration, sim, tests)
+    app.include_router(robot_calibration.verify_alias)  # POST /tests/verify, before /tests/{kind}
     for module in (*routers, compensate):
         app.include_router(module.router)
     docs.install(app)

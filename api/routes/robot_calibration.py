@@ -122,3 +122,15 @@ def save(
 @router.post("/verify", dependencies=[Authorized], summary="Re-measure stored poses: drift against the stored model")
 def verify(rc: RobotCalibrationDep, body: Annotated[dict[str, Any] | None, Body()] = None) -> dict[str, Any]:
     return _call(rc.verify, body)  # type: ignore[no-any-return]
+
+
+# the and an integrator's name for the shift's check: the same call under /tests, beside the
+# accuracy tests (registered before /tests/{kind}, whose kinds it would otherwise be taken for)
+verify_alias = APIRouter(tags=["accuracy tests"])
+verify_alias.add_api_route(
+    "/tests/verify",
+    verify,
+    methods=["POST"],
+    dependencies=[Authorized],
+    summary="The shift's check (= POST /calibration/robot/verify)",
+)

@@ -74,6 +74,17 @@ def test_compensate_refuses_bad_requests_with_a_sentence(live, case):
         assert r.status_code == 422 and "but not seed_joint_2" in r.json()["message"]
 
 
+def test_the_shifts_check_answers_under_both_names_and_needs_a_stored_model(live):
+    # runs before a model is stored (module order): both names refuse with the same sentence
+    with live.client() as c:
+        a = c.post("/calibration/robot/verify", json={})
+        b = c.post("/tests/verify", json={})
+    assert a.status_code == b.status_code == 409, (a.text, b.text)
+    assert a.json()["reason"] == b.json()["reason"] == "not_calibrated" and a.json()["message"] == b.json()["message"]
+    with live.client(auth=False) as c:
+        assert c.post("/tests/verify", json={}).status_code == 401
+
+
 def test_a_stored_robot_model_is_versioned_validated_and_used_when_the_body_has_none(live, case):
     corrected, _, T, targets, model = case
     with live.client() as c:
