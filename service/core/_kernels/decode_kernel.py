@@ -28,6 +28,7 @@ FIXED8, ROUNDED, FLOAT = 0, 1, 2
 #: columns of :func:`read_rings_kernel`'s float output
 ROLL_DEG, CONFIDENCE, DISK_DN, BACKGROUND_DN = 0, 1, 2, 3
 _TWO_PI = 2.0 * np.pi
+RING_LOOK = 48  # samples per circle of :func:`_may_have_ring`'s look at the ring zone
 
 
 @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
@@ -177,15 +178,24 @@ def _fit_conic(r, ray, found, size, G, g, row):
 def _may_have_ring(img, mode, e, pts, vals, work):
     """Whether anything in the ring zone (``pts[13:]``) is clearly brighter than the gap
     (``pts[1:13]``) round the disk's centre (``pts[0]``). ``vals`` (len(pts),) and ``work`` (12,)
-    are scratch."""
+    are scratch.
+
+    The ring zone is sampled a circle (RING_LOOK points) at a time, and the look ends at the first
+    circle that holds a bright sample: the answer is that of the brightest sample (``v - gap`` is
+    monotonic in ``v``), and a coded ring shows in the first circle (a third of the samples)."""
     m00, m01, m10, m11 = _affine(e)
-    _sample(img, mode, e, m00, m01, m10, m11, pts, vals)
+    _sample(img, mode, e, m00, m01, m10, m11, pts[:13], vals[:13])
     disk, gap = vals[0], _median(vals[1:13], work)
-    ring_max = -np.inf
-    for k in range(13, pts.shape[0]):
-        if np.isfinite(vals[k]) and vals[k] > ring_max:
-            ring_max = vals[k]
-    return disk > gap and ring_max - gap > 0.25 * (disk - gap)
+    if not disk > gap:
+        return False
+    bar = 0.25 * (disk - gap)
+    for k0 in range(13, pts.shape[0], RING_LOOK):
+        k1 = min(k0 + RING_LOOK, pts.shape[0])
+        _sample(img, mode, e, m00, m01, m10, m11, pts[k0:k1], vals[k0:k1])
+        for k in range(k0, k1):
+            if np.isfinite(vals[k]) and vals[k] - gap > bar:
+                return True
+    return False
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

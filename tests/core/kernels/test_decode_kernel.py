@@ -24,6 +24,7 @@ from service.core._kernels.decode_kernel import (
     FIXED8,
     ROLL_DEG,
     ROUNDED,
+    _may_have_ring,
     read_rings_kernel,
 )
 from service.core.targets import codes as C
@@ -247,3 +248,41 @@ def test_no_reading_where_numpy_finds_none(scene):
     assert np.flatnonzero(_kernel(image, ellipses[:8], todo=todo)[0]).tolist() == [7]
     empty = _kernel(image, np.zeros((0, 5)))
     assert [x.shape for x in empty] == [(0,), (0,), (0, 4), (0, 12), (0, 12), (0, 5)]
+
+
+def test_ring_look_is_the_numpy_look_at_every_sample(scene, rng):
+    """The cheap look for a ring (step 0; it ends at the first circle of the ring zone with a
+    bright sample) answers as the brightest of all its samples does, by cv2.remap: coded targets,
+    the same disks with their rings painted over, ellipses anywhere (most over background, some
+    half outside the image) and ellipses whose disk is dimmer than the gap."""
+    image, _, ellipses, _ = scene
+    h, w = image.shape
+    L = D._layout(FAMILY)
+    blank = image.copy()
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    for e in ellipses[:20]:
+        rr = np.hypot(u - e[0], v - e[1]) / max(e[2], e[3])
+        blank[(rr > 1.5) & (rr < 4.0)] = np.median(image)
+    anywhere = np.column_stack(
+        [
+            rng.uniform(-20, w + 20, 300),
+            rng.uniform(-20, h + 20, 300),
+            rng.uniform(2, 15, (300, 2)),
+            rng.uniform(-np.pi, np.pi, 300),
+        ]
+    )
+    cases = [(image, ellipses), (blank, ellipses[:40]), (image, anywhere), (blank, anywhere)]
+    n_ring = n_none = 0
+    for img, es in cases:
+        for e in es:
+            vals = _remap(img, e, L.ring_pts)
+            disk, gap, ring = vals[0], np.median(vals[1:13]), vals[13:]
+            ring = ring[np.isfinite(ring)]
+            expected = bool(disk > gap and ring.size and ring.max() - gap > 0.25 * (disk - gap))
+            got = _may_have_ring(
+                img, FIXED8, np.ascontiguousarray(e), L.ring_pts, np.empty(len(L.ring_pts)), np.empty(12)
+            )
+            assert got == expected, e
+            n_ring += expected
+            n_none += not expected
+    assert n_ring > 100 and n_none > 100  # both answers, many times
