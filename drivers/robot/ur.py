@@ -265,6 +265,7 @@ class URRobot:
         self._first_sample.clear()
         self._first_failure = None
         self._history.clear()
+        T_from_ur_pose(np.zeros(6))  # loads the compiled rotation here, not while the first sample waits
         self._spawn_child()
         self._thread = threading.Thread(target=self._read_loop, name=f"ur-rtde-{self.host}", daemon=True)
         self._thread.start()

@@ -545,6 +545,7 @@ def warm_up() -> None:
     point_statistics_kernel(r, A, np.eye(6), -1.0)
     adjust_kernel(R, t, p, xy, W, 12.0, 1000.0, 2)
     rotation_from_rotvec_kernel(np.zeros(3))
+    rotvec_from_matrix_kernel(np.eye(3))  # also called alone (so3.rotvec_from_R of one matrix)
     predict_kernel(np.eye(4), np.eye(4), 1.0)
     whitened_ideal_kernel(xy, 1.0, 1.0, 0.0067, 0.0067, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     is_rigid_kernel(np.eye(4), 1e-6)

@@ -54,7 +54,7 @@ def R_from_rotvec(rotvec: ArrayLike) -> Array:
     """
     w = np.asarray(rotvec, dtype=np.float64)
     if w.shape == (3,):  # one vector: compiled Rodrigues, as rotvec_from_R
-        return np.asarray(rotation_from_rotvec_kernel(np.ascontiguousarray(w)))
+        return np.asarray(rotation_from_rotvec_kernel(np.array(w, order="C")))  # a writable copy: one signature
     return np.asarray(Rotation.from_rotvec(w.reshape(-1, 3)).as_matrix()).reshape(*w.shape[:-1], 3, 3)
 
 
@@ -68,7 +68,7 @@ def rotvec_from_R(R: ArrayLike) -> Array:
     """
     R = np.asarray(R, dtype=np.float64)
     if R.shape == (3, 3):  # one matrix: compiled, ~40x less per call; equal to 1e-15 on rotations
-        return np.asarray(rotvec_from_matrix_kernel(np.ascontiguousarray(R)))
+        return np.asarray(rotvec_from_matrix_kernel(np.array(R, order="C")))  # (a read-only one compiles anew)
     return np.asarray(Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec()).reshape(*R.shape[:-2], 3)
 
 
