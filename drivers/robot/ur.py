@@ -271,8 +271,12 @@ class URRobot:
         self._thread.start()
         _OPEN_ROBOTS.add(self)
         deadline = time.monotonic() + self.open_timeout_s
-        while time.monotonic() < deadline and not self._first_sample.is_set() and self._first_failure is None:
+        # until a *fresh* sample: on a busy host the first ones can be handled after they went stale,
+        # and open() returning means connected
+        while time.monotonic() < deadline and not self.connected and self._first_failure is None:
             self._first_sample.wait(0.02)
+            if self._first_sample.is_set():
+                time.sleep(0.002)
         if not self._first_sample.is_set():
             why = self._first_failure or f"nothing within {self.open_timeout_s:g} s"
             self.close()
