@@ -140,6 +140,10 @@ class RobotConfig(_Section):
 
 class ProcessingConfig(_Section):
     roi_tracking: bool = True
+    # "process": each camera's frames are measured in a child process of their own (the measurement
+    # does not wait for the interpreter lock behind acquisition, storage and the fan-out); "thread":
+    # in the service's processing thread (one process, e.g. to profile it)
+    measure_in: Literal["process", "thread"] = "process"
     # a rig's cameras are combined when their exposures lie this close (a hardware-triggered rig: ~0)
     rig_sync_tolerance_s: float = Field(0.005, gt=0, le=1, description="rig exposure pairing window, s, (0, 1]")
     code_family: Literal["posecell12", "aicon14"] = "posecell12"

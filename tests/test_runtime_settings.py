@@ -85,9 +85,13 @@ def test_a_camera_that_failed_to_start_refuses_and_changes_nothing(worker):
     assert worker.settings is old
 
 
-def test_the_processor_rebuilds_its_measurer_when_the_processing_options_are_swapped(worker, monkeypatch):
+@pytest.mark.parametrize("measure_in", ["thread", "process"])
+def test_the_processor_rebuilds_its_measurer_when_the_processing_options_are_swapped(worker, monkeypatch, measure_in):
     built: list[MeasureSettings] = []
+    # what the processor builds its measurer with, recorded (camera and field are placeholders here)
     monkeypatch.setattr(processor_module, "FrameMeasurer", lambda camera, field, s: built.append(s) or s)
+    monkeypatch.setattr(processor_module.MeasureProcess, "configure", lambda self, camera, field, s: built.append(s))
+    worker.update_processing(worker.settings.processing.model_copy(update={"measure_in": measure_in}))
     worker.calibration.camera, worker.calibration.field = object(), object()
     proc = worker.processors["cam0"]
     proc.warm_up()
@@ -95,6 +99,7 @@ def test_the_processor_rebuilds_its_measurer_when_the_processing_options_are_swa
     worker.update_processing(worker.settings.processing.model_copy(update={"max_sigma0_px": 0.8}))
     proc.warm_up()
     assert [s.max_sigma0_px for s in built] == [0.5, 0.8]
+    assert proc.measurement_report()["in"] == measure_in
 
 
 def test_the_worker_is_built_with_the_simulated_devices_delivery_delays_stated(tmp_path):
@@ -144,7 +149,8 @@ def test_every_option_reaches_the_measure_settings():
 
 def test_the_options_are_the_processing_sections_knobs_by_name():
     options = set(inspect.signature(MeasureSettings.from_options).parameters) - {"range_mm"}
-    assert options == set(ProcessingConfig.model_fields) - {"rig_sync_tolerance_s"}
+    # the section's other knobs say how the service runs the measurement, not how a frame is measured
+    assert options == set(ProcessingConfig.model_fields) - {"rig_sync_tolerance_s", "measure_in"}
 
 
 @pytest.mark.parametrize(

@@ -18,9 +18,10 @@ they take as little as they can from the service they measure. Reported per row:
 - *exposure → WebSocket* p50/p99/max: the probe's arrival (host wall clock)
   minus the message's ``t_exposure_unix_ns`` — what a client sees;
 - *exposure → SQLite commit* p99: from the store's own count (``/health``);
-- *CPU/frame*: the service process's user + system CPU time over the window
-  divided by the frames it measured (all its threads: acquisition, measurement,
-  fan-out, storage).
+- *CPU/frame*: the user + system CPU time of the service's process and the
+  processes under it (the measurement's children, the replay's renderer) over the
+  window, divided by the frames it measured (acquisition, measurement, fan-out,
+  storage).
 """
 
 from __future__ import annotations
@@ -54,8 +55,22 @@ stream_every_s = 0.0  # every result committed
 
 
 def _cpu_s(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) * _CLOCK_TICK_S  # utime, stime
+    """User + system CPU time of ``pid`` and every process under it (the measurement children), s."""
+    stats: dict[int, tuple[int, float]] = {}  # pid -> (parent pid, its CPU s)
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # ended while we looked
+            continue
+        stats[int(entry.name)] = (int(fields[1]), (int(fields[11]) + int(fields[12])) * _CLOCK_TICK_S)
+    tree, grew = {pid}, True
+    while grew:
+        below = {p for p, (parent, _) in stats.items() if parent in tree} - tree
+        tree |= below
+        grew = bool(below)
+    return sum(stats[p][1] for p in tree if p in stats)
 
 
 def _int_after(data: bytes, key: bytes) -> int | None:

@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from typing import Any, overload
 
 import numpy as np
@@ -129,7 +129,12 @@ class TargetTable(Sequence[TargetObservation]):
     def to_json(self) -> str:
         """The JSON text of :meth:`to_list` (the same text orjson writes of it), built from two
         encodings of the coordinate arrays instead of a dict per target: the per-target objects
-        were most of a frame's encoding time on the service's hot path."""
+        were most of a frame's encoding time on the service's hot path. Encoded once, kept with
+        the table (and pickled with it: a measurement process sends it encoded)."""
+        return self._json
+
+    @cached_property
+    def _json(self) -> str:
         n = len(self.ids)
         if n == 0:
             return "[]"

@@ -103,10 +103,14 @@ class FramePairer:
         return out
 
     def _feed_robot(self, t_host: np.ndarray, t_robot_s: np.ndarray) -> None:
-        for th, tr in zip(t_host, t_robot_s, strict=True):
-            if th > self._robot_fed_until_ns and np.isfinite(tr):
-                self.robot_clock.add(tr * 1e9, float(th))
-                self._robot_fed_until_ns = int(th)
+        # only the samples not fed yet (one or two a frame of the ~0.5 s window asked for): a
+        # Python loop over the whole window was a tenth of the processing thread's time at 500 Hz
+        new = np.flatnonzero((t_host > self._robot_fed_until_ns) & np.isfinite(t_robot_s))
+        for k in new.tolist():
+            th = int(t_host[k])
+            if th > self._robot_fed_until_ns:
+                self.robot_clock.add(float(t_robot_s[k]) * 1e9, float(th))
+                self._robot_fed_until_ns = th
 
     def pair(self, frame: Frame, history: RobotHistory) -> Pairing:
         t_exp, source = self.exposure_instant_ns(frame)

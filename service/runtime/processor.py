@@ -1,7 +1,8 @@
 """One camera's processing: frame + robot history → its :class:`~service.core.measurement.Measurement`.
 
 The pose comes from ``service.pipeline.measure.FrameMeasurer`` (ROI tracking with a
-full-frame fall-back). Then the flange:
+full-frame fall-back), by default in a child process of the camera's own
+(:mod:`service.runtime.measure_process`; ``[processing] measure_in``). Then the flange:
 
     T_base_flange_measured = T_base_field @ T_field_camera @ inv(T_flange_camera)
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
@@ -28,9 +30,10 @@ from service.core.measurement import Flange, Measurement
 from service.core.pose.timesync import TimeOffsetFit, estimate_time_offset_s
 from service.core.results import Failure, PoseResult, Reason
 from service.pipeline.flange import flange_part
-from service.pipeline.measure import FrameMeasurer, MeasureSettings
+from service.pipeline.measure import FrameMeasurer, MeasureSettings, Outcome
 from service.runtime.acquisition import DeviceState
 from service.runtime.calibration_state import CalibrationState
+from service.runtime.measure_process import MeasureProcess, Measurer
 from service.runtime.pairing import FramePairer
 from service.settings import CameraConfig, ProcessingConfig, Settings
 
@@ -51,6 +54,19 @@ def measure_settings(p: ProcessingConfig) -> MeasureSettings:
     )
 
 
+@dataclass
+class Pending:
+    """A frame handed to the measurement (:meth:`CameraProcessor.begin`), its result not yet built."""
+
+    frame: Frame
+    t_exposure_ns: int
+    exposure_source: str
+    t_begun: float  # perf_counter s
+    t_measured: float = 0.0
+    outcome: Outcome | None = None
+    failure: Failure | None = None  # not measurable (no calibration, not a grey image)
+
+
 class CameraProcessor:
     """Measures the frames of one camera (called from the worker's processing thread only)."""
 
@@ -64,7 +80,8 @@ class CameraProcessor:
         cam_cfg = next(c for c in settings.cameras if c.name == name)
         self.pairer = FramePairer(cam_cfg.transport_latency_s, settings.robot.transport_latency_s)
         self.failed_reason = ""
-        self._measurer: FrameMeasurer | None = None
+        self._measurer: Measurer | None = None
+        self._process: MeasureProcess | None = None  # the child, kept across set-up changes
         self._generation = -1
         self._motion: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=600)
         self._offset: TimeOffsetFit | None = None
@@ -79,44 +96,93 @@ class CameraProcessor:
         self.pairer.camera_clock.reset()  # a new exposure or frame rate changes the arrival pattern
 
     def warm_up(self) -> None:
-        """Build the measurer now (loads or compiles the numba kernels)."""
+        """Build the measurer now (loads or compiles the numba kernels; starts the child process)."""
         self._current_measurer()
 
-    def _current_measurer(self) -> FrameMeasurer | None:
+    def close(self) -> None:
+        """Stop the measurement's child process (if any)."""
+        if self._process is not None:
+            self._process.close()
+            self._process = None
+
+    def measurement_report(self) -> dict[str, Any]:
+        """Where this camera's frames are measured: ``process`` (its pid, children replaced) or ``thread``."""
+        if self._process is None:
+            return {"in": "thread" if self._measurer is not None else None, "pid": None, "restarts": 0}
+        return {"in": "process", "pid": self._process.pid, "restarts": self._process.restarts}
+
+    def _current_measurer(self) -> Measurer | None:
         cal, processing = self.calibration, self.settings.processing
         if cal.generation != self._generation or processing is not self._processing:
             self._generation, self._processing = cal.generation, processing
             if cal.camera is None or cal.field is None:
                 self._measurer = None
+            elif processing.measure_in == "process":
+                if self._process is None:
+                    self._process = MeasureProcess(self.name)
+                self._measurer = self._process
+                try:
+                    self._process.configure(cal.camera, cal.field, measure_settings(processing))
+                except Exception:
+                    self._generation = -1  # set up again with the next frame
+                    raise
             else:
+                self.close()
                 self._measurer = FrameMeasurer(cal.camera, cal.field, measure_settings(processing))
         return self._measurer
 
     def process(self, frame: Frame, robot: RobotDriver | None, robot_state: DeviceState) -> Measurement:
-        t0 = time.perf_counter()
+        """Measure one frame now (:meth:`begin`, :meth:`collect` and :meth:`finish` in one)."""
+        pending = self.begin(frame)
+        self.collect(pending)
+        return self.finish(pending, robot, robot_state)
+
+    def begin(self, frame: Frame) -> Pending:
+        """Hand the frame to the measurement: in a child process it is measured while this thread goes on."""
         t_exposure_ns, source = self.pairer.exposure_instant_ns(frame)
+        pending = Pending(frame, t_exposure_ns, source, time.perf_counter())
+        measurer = self._current_measurer()
+        if measurer is None:
+            missing = [k for k in ("camera", "field") if getattr(self.calibration, k) is None]
+            pending.failure = Failure(Reason.not_calibrated, f"no {' and no '.join(missing)} calibration is loaded")
+        elif frame.image.ndim != 2 or frame.image.size == 0:
+            pending.failure = Failure(Reason.bad_image, f"frame of shape {frame.image.shape} is not a grey image")
+        elif isinstance(measurer, MeasureProcess):
+            measurer.submit(frame.image, t_exposure_ns * 1e-9)
+        else:
+            pending.outcome = measurer.measure(frame.image, t_exposure_ns * 1e-9)
+        return pending
+
+    def collect(self, pending: Pending) -> None:
+        """Wait for the outcome of a frame handed to the child process (no-op when measured here)."""
+        if pending.outcome is None and pending.failure is None and self._process is not None:
+            pending.outcome = self._process.collect()
+        pending.t_measured = time.perf_counter()
+
+    def finish(self, pending: Pending, robot: RobotDriver | None, robot_state: DeviceState) -> Measurement:
+        """The frame's :class:`Measurement`: its pose (collected) with the flange at its exposure."""
+        frame, t_exposure_ns = pending.frame, pending.t_exposure_ns
         head = {
             "camera": self.name,
             "seq": frame.seq,
             "t_exposure_host_ns": t_exposure_ns,
             "t_unix_ns": t_exposure_ns + self._wall_minus_mono_ns,
-            "exposure_source": source,
+            "exposure_source": pending.exposure_source,
         }
-        measurer = self._current_measurer()
-        if measurer is None:
-            missing = [k for k in ("camera", "field") if getattr(self.calibration, k) is None]
-            fail = Failure(Reason.not_calibrated, f"no {' and no '.join(missing)} calibration is loaded")
+        if pending.failure is not None or pending.outcome is None:
+            fail = pending.failure or Failure(Reason.no_frame, "the frame's measurement was not collected")
             return Measurement(result=fail, **head)
-        if frame.image.ndim != 2 or frame.image.size == 0:
-            fail = Failure(Reason.bad_image, f"frame of shape {frame.image.shape} is not a grey image")
-            return Measurement(result=fail, **head)
-        outcome = measurer.measure(frame.image, t_exposure_ns * 1e-9)
+        outcome = pending.outcome
         result = outcome.result
+        t2 = time.perf_counter()
         flange = None
         if isinstance(result, PoseResult):
             flange = self._flange(result, frame, t_exposure_ns, robot, robot_state)
         timings = dict(outcome.timings_ms)
-        timings["processing"] = (time.perf_counter() - t0) * 1e3
+        # the measurement as this thread saw it (in a child process: with the frame's copy and the pipe)
+        timings["measure"] = (pending.t_measured - pending.t_begun) * 1e3
+        timings["flange"] = (time.perf_counter() - t2) * 1e3
+        timings["processing"] = (time.perf_counter() - pending.t_begun) * 1e3
         timings["latency"] = (time.monotonic_ns() - t_exposure_ns) * 1e-6
         truth = frame.meta.get("T_field_camera")  # simulation: the truth travels with the frame
         return Measurement(

@@ -45,7 +45,8 @@ from service.core.results import Failure, Reason
 from service.runtime.acquisition import CameraChannel, DeviceState
 from service.runtime.calibration_state import CalibrationState
 from service.runtime.cell_runtime import CellRuntime, with_stated_latencies
-from service.runtime.processor import CameraProcessor
+from service.runtime.measure_process import MeasureProcessError
+from service.runtime.processor import CameraProcessor, Pending
 from service.runtime.rig_combiner import RIG, RigCombiner
 from service.runtime.solver_process import SolverProcess
 from service.settings import CameraConfig, ProcessingConfig, Settings
@@ -157,6 +158,8 @@ class Worker:
                 log.warning("closing robot: %s", e)
         self.cell.stop()
         self.solver.stop()
+        for proc in self.processors.values():
+            proc.close()
         with self._lock:
             for _, _, fut in self._waiters:
                 if not fut.done():
@@ -356,7 +359,7 @@ class Worker:
                 frame = ch.slot.take()
                 if frame is not None:
                     return name, frame
-            if not self._stop.is_set():
+            if timeout_s > 0 and not self._stop.is_set():
                 self._wakeup.wait(timeout_s)  # a frame or a camera's state change wakes it
         return None
 
@@ -370,23 +373,51 @@ class Worker:
                 log.exception("preparing the measurer of camera %s", proc.name)
         self.processing_ready = True
         self.event("info", "processing_ready", "processing is ready")
+        # one frame in hand: after its pose is collected, a frame already waiting goes to the
+        # measurement (a child process) before this one's flange, storage and fan-out are done here
+        handed: tuple[str, Frame, Pending | Measurement] | None = None
         while not self._stop.is_set():
             self._publish_outages()
-            got = self._next_frame(0.25)
-            if got is None:
-                continue
-            name, frame = got
-            try:
-                result = self.processors[name].process(frame, self.robot, self.robot_state)
-            except Exception as e:  # a bug must not stop the cell: report it as a failed frame
-                log.exception("processing a frame of camera %s", name)
-                result = self._failure(name, Reason.bad_image, f"internal error while measuring: {e!r}")
+            if handed is None:
+                got = self._next_frame(0.25)
+                if got is None:
+                    continue
+                handed = self._begin(*got)
+            name, frame, pending = handed
+            processor = self.processors[name]
+            if isinstance(pending, Pending):
+                try:
+                    processor.collect(pending)
+                except Exception as e:
+                    pending = self._internal_failure(name, e)
+            got = self._next_frame(0.0)
+            handed = None if got is None else self._begin(*got)
+            if isinstance(pending, Pending):
+                try:
+                    result = processor.finish(pending, self.robot, self.robot_state)
+                except Exception as e:
+                    result = self._internal_failure(name, e)
+            else:
+                result = pending
             self._outage_published_ns.pop(name, None)
             self._publish(name, result, frame)
             if len(self.cameras) >= 2 and self.calibration.rig is not None:
                 combined = self.rig.add(result, self.calibration.rig, self.calibration.field, self.calibration.handeye)
                 if combined is not None:
                     self._publish(RIG, combined, frame)
+
+    def _begin(self, name: str, frame: Frame) -> tuple[str, Frame, Pending | Measurement]:
+        try:
+            return name, frame, self.processors[name].begin(frame)
+        except Exception as e:
+            return name, frame, self._internal_failure(name, e)
+
+    def _internal_failure(self, name: str, e: Exception) -> Measurement:
+        """A frame that could not be measured for a reason of ours (a bug, a lost child): a failed result."""
+        if isinstance(e, MeasureProcessError):
+            return self._failure(name, Reason.bad_image, str(e))  # said and logged by the child's keeper
+        log.error("processing a frame of camera %s", name, exc_info=e)  # a bug must not stop the cell
+        return self._failure(name, Reason.bad_image, f"internal error while measuring: {e!r}")
 
     def _camera_outage(self, name: str) -> tuple[str, str] | None:
         """(state, sentence) of a camera that cannot deliver measurable frames now, else None."""
@@ -549,6 +580,7 @@ class Worker:
                 "latency_ms_median": _median(self._latency_ms),
                 "processing_ms_median": _median(self._processing_ms),
                 "time_offset": {n: p.time_offset_report() for n, p in self.processors.items()},
+                "measurement": {n: p.measurement_report() for n, p in self.processors.items()},
             },
             "storage": storage,
         }
