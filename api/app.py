@@ -48,7 +48,7 @@ from api.routes import (
     tests,
 )
 from api.security import resolve_token
-from api.ws import Hub
+from api.ws import Hub, TapRawSend
 from service.runtime.worker import Worker
 from service.settings import Settings, apply_runtime_file
 from service.store.calibrations import CalibrationStore
@@ -120,6 +120,8 @@ def create_app(settings: Settings) -> FastAPI:
         app.add_middleware(
             CORSMiddleware, allow_origins=settings.server.cors_origins, allow_methods=["*"], allow_headers=["*"]
         )
+    # outermost of all: the WebSocket fan-out writes its frames with the server's own send (api.ws)
+    app.add_middleware(TapRawSend)
     # the hand-eye and robot session routes come before /calibration/{kind} so that their paths win
     routers = (health, measure, data, config, handeye, camera_calibration, robot_calibration, calibration, sim, tests)
     app.include_router(robot_calibration.verify_alias)  # POST /tests/verify, before /tests/{kind}

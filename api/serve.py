@@ -54,6 +54,7 @@ def uvicorn_config(app: Any, settings: Settings, **overrides: Any) -> uvicorn.Co
         "ws_ping_interval": s.ws_ping_interval_s,
         "ws_ping_timeout": s.ws_ping_timeout_s,
         "ws_max_size": s.ws_max_message_bytes,
+        "ws": "websockets-sansio",  # the protocol api.ws.FrameWriter writes to directly
         "ws_per_message_deflate": s.ws_compression,
         **overrides,
     }

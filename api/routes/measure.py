@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from api.deps import WorkerDep
 from api.errors import STATUS, ApiError
 from api.security import Authorized
-from api.ws import StalledClient
+from api.ws import FrameWriter, StalledClient
 from service.core.results import Reason
 from service.workflows.annotate import encode_frame
 
@@ -128,12 +128,15 @@ async def ws_poses(
     worker = websocket.app.state.worker
     await websocket.accept()
     client = hub.add(camera, max_rate_hz, targets)  # subscribe first, then backfill: no result falls between
+    client.writer = FrameWriter.of(websocket)
     try:
         current = worker.current(camera)
         if current is not None:
             await hub.send(websocket, client, current.json if targets else current.json_without_targets)
         while True:
+            client.busy = False  # the fan-out may write to the socket itself while nothing is held here
             text = await client.queue.get()
+            client.busy = True
             await hub.send(websocket, client, text)
     except StalledClient as e:
         worker.event("warning", "websocket_client_stalled", str(e))
