@@ -7,6 +7,7 @@ poses, appended without allocation and searched by bisection.
 
 from __future__ import annotations
 
+import bisect
 import threading
 
 import numpy as np
@@ -63,25 +64,29 @@ class RobotHistory:
         with self._lock:
             return self._sample((self._n - 1) % self.capacity) if self._n else None
 
-    def _ordered_indices(self) -> np.ndarray:
-        n = len(self)
-        start = self._n - n
-        return (np.arange(start, self._n) % self.capacity).astype(np.intp)
+    def _span(self, t0_host_ns: int, t1_host_ns: int) -> np.ndarray:
+        """Buffer indices of the samples with t0 <= t_host <= t1, oldest first (the lock held).
+
+        Bisection over the ring in arrival order, without materialising its order: at 500 Hz the
+        pairing asks this for every frame, and sorting out all 5000 slots each time was most of it.
+        """
+        n, cap = len(self), self.capacity
+        start = (self._n - n) % cap  # the oldest sample's slot
+        t = self._t_host
+
+        def at(k: int) -> int:
+            return int(t[(start + k) % cap])
+
+        lo = bisect.bisect_left(range(n), t0_host_ns, key=at)
+        hi = bisect.bisect_right(range(n), t1_host_ns, lo=lo, key=at)
+        return (start + np.arange(lo, hi)) % cap
 
     def samples_between(self, t0_host_ns: int, t1_host_ns: int) -> list[RobotSample]:
         with self._lock:
-            idx = self._ordered_indices()
-            t = self._t_host[idx]
-            lo = int(np.searchsorted(t, t0_host_ns, side="left"))
-            hi = int(np.searchsorted(t, t1_host_ns, side="right"))
-            return [self._sample(int(i)) for i in idx[lo:hi]]
+            return [self._sample(int(i)) for i in self._span(t0_host_ns, t1_host_ns)]
 
     def arrays_between(self, t0_host_ns: int, t1_host_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(t_host_ns (K,), t_robot_s (K,), T_base_flange (K, 4, 4)) copies, for vectorised pairing."""
         with self._lock:
-            idx = self._ordered_indices()
-            t = self._t_host[idx]
-            lo = int(np.searchsorted(t, t0_host_ns, side="left"))
-            hi = int(np.searchsorted(t, t1_host_ns, side="right"))
-            sel = idx[lo:hi]
-            return self._t_host[sel].copy(), self._t_robot[sel].copy(), self._T[sel].copy()
+            sel = self._span(t0_host_ns, t1_host_ns)
+            return self._t_host[sel], self._t_robot[sel], self._T[sel]  # fancy indexing copies

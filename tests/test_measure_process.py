@@ -64,6 +64,7 @@ def test_a_killed_child_costs_one_frame_with_a_sentence_and_the_next_frame_has_a
     assert isinstance(child.measure(frames[0].image, 0.0).result, PoseResult)
     first = child.pid
     assert first is not None
+    os.kill(first, signal.SIGSTOP)  # stopped, it cannot answer before it is killed
     child.submit(frames[1].image, DT_S)
     os.kill(first, signal.SIGKILL)
     with pytest.raises(MeasureProcessError, match=r"camera cam0 died \(exit code -9\); a new one starts"):
@@ -101,13 +102,62 @@ def test_an_error_in_the_child_comes_back_as_a_sentence_and_the_child_stays(fram
     assert isinstance(child.measure(frames[0].image).result, PoseResult)
 
 
-def test_one_frame_at_a_time_and_nothing_to_collect_without_a_frame(frames, child):
+def test_two_frames_in_flight_are_answered_in_order_and_a_third_waits(frames, child):
     with pytest.raises(MeasureProcessError, match="no frame was submitted"):
         child.collect()
-    child.submit(frames[0].image)
-    with pytest.raises(MeasureProcessError, match="already being measured"):
-        child.submit(frames[1].image)
-    assert isinstance(child.collect().result, PoseResult)
+    here = FrameMeasurer(reference_camera(), reference_field(), MeasureSettings())
+    expected = [here.measure(f.image, k * DT_S) for k, f in enumerate(frames[:4])]
+    child.submit(frames[0].image, 0.0)
+    child.submit(frames[1].image, DT_S)
+    assert not child.can_submit()
+    with pytest.raises(MeasureProcessError, match="2 frames are already being measured"):
+        child.submit(frames[2].image, 2 * DT_S)
+    got = [child.collect()]
+    child.submit(frames[2].image, 2 * DT_S)  # the slot of the first is free again
+    got.append(child.collect())
+    child.submit(frames[3].image, 3 * DT_S)
+    got += [child.collect(), child.collect()]
+    for g, e in zip(got, expected):
+        assert g.mode == e.mode
+        np.testing.assert_array_equal(g.result.T_field_camera, e.result.T_field_camera)
+
+
+def test_a_larger_frame_while_another_is_in_flight_gets_a_new_buffer_and_both_are_right(frames, child):
+    small = frames[0].image
+    big = np.zeros((small.shape[0] * 2, small.shape[1] * 2), small.dtype)
+    big[: small.shape[0], : small.shape[1]] = frames[1].image
+    child.measure(small)  # the buffer is sized for the small frames
+    child.submit(small)
+    child.submit(big)  # read by the child from the new buffer, after the first from the old one
+    first, second = child.collect(), child.collect()
+    assert isinstance(first.result, PoseResult) and isinstance(second.result, PoseResult)
+    here = FrameMeasurer(reference_camera(), reference_field(), MeasureSettings())
+    np.testing.assert_array_equal(first.result.T_field_camera, here.measure(small).result.T_field_camera)
+    np.testing.assert_array_equal(second.result.T_field_camera, here.measure(big).result.T_field_camera)
+
+
+def test_frames_in_flight_when_the_child_dies_each_fail_with_the_sentence(frames, child):
+    child.measure(frames[0].image)
+    pid = child.pid
+    os.kill(pid, signal.SIGSTOP)  # stopped, it cannot answer before it is killed
+    child.submit(frames[1].image)
+    child.submit(frames[2].image)
+    os.kill(pid, signal.SIGKILL)
+    for _ in range(2):
+        with pytest.raises(MeasureProcessError, match="died"):
+            child.collect()
+    with pytest.raises(MeasureProcessError, match="no frame was submitted"):
+        child.collect()
+    assert isinstance(child.measure(frames[3].image).result, PoseResult) and child.restarts == 1
+
+
+def test_a_set_up_that_fails_in_the_child_is_told_with_every_frame_until_a_good_one(frames, child):
+    child.configure(reference_camera(), "not a field", MeasureSettings())  # type: ignore[arg-type]
+    for _ in range(2):
+        with pytest.raises(MeasureProcessError, match="the setup failed"):
+            child.measure(frames[0].image)
+    child.configure(reference_camera(), reference_field(), MeasureSettings())
+    assert isinstance(child.measure(frames[0].image).result, PoseResult) and child.restarts == 0
 
 
 def test_no_shared_buffer_file_is_left_behind(frames):

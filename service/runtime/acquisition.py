@@ -9,7 +9,9 @@ other threads (software trigger, new settings) run here between fetches.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import queue
 import threading
 import time
@@ -56,6 +58,41 @@ class CameraCounters:
     fps: float = 0.0
     last_frame_host_ns: int = 0
     extra: dict[str, Any] = field(default_factory=dict)
+
+
+class Wakeup(threading.Condition):
+    """The processing thread's wake-up on a new frame or a camera's change of state: a condition
+    to wait on, and a pipe to select together with the measurement processes' answers
+    (:meth:`fileno`, made on first use)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._pipe: tuple[int, int] | None = None
+
+    def fileno(self) -> int:
+        if self._pipe is None:
+            r, w = os.pipe()
+            os.set_blocking(r, False)
+            os.set_blocking(w, False)
+            self._pipe = (r, w)
+        return self._pipe[0]
+
+    def notify_all(self) -> None:
+        super().notify_all()
+        if self._pipe is not None:
+            with contextlib.suppress(BlockingIOError):  # full: it is readable, which is all it says
+                os.write(self._pipe[1], b"\0")
+
+    def drain(self) -> None:
+        if self._pipe is not None:
+            with contextlib.suppress(BlockingIOError):
+                while os.read(self._pipe[0], 4096):
+                    pass
+
+    def close(self) -> None:
+        pipe, self._pipe = self._pipe, None
+        for fd in pipe or ():
+            os.close(fd)
 
 
 class FrameSlot:

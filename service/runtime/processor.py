@@ -33,7 +33,7 @@ from service.pipeline.flange import flange_part
 from service.pipeline.measure import FrameMeasurer, MeasureSettings, Outcome
 from service.runtime.acquisition import DeviceState
 from service.runtime.calibration_state import CalibrationState
-from service.runtime.measure_process import MeasureProcess, Measurer
+from service.runtime.measure_process import DEPTH, MeasureProcess, Measurer
 from service.runtime.pairing import FramePairer
 from service.settings import CameraConfig, ProcessingConfig, Settings
 
@@ -111,6 +111,19 @@ class CameraProcessor:
             return {"in": "thread" if self._measurer is not None else None, "pid": None, "restarts": 0}
         return {"in": "process", "pid": self._process.pid, "restarts": self._process.restarts}
 
+    @property
+    def depth(self) -> int:
+        """Frames this camera may have handed to the measurement at once (:meth:`begin` before :meth:`collect`)."""
+        return DEPTH if self.settings.processing.measure_in == "process" else 1
+
+    def waitable(self) -> Any:
+        """What the oldest begun frame's outcome arrives on (a connection to wait on), or None."""
+        return None if self._process is None else self._process.waitable()
+
+    def can_begin(self) -> bool:
+        """True when :meth:`begin` can hand a frame over now."""
+        return self._process is None or self._process.can_submit()
+
     def _current_measurer(self) -> Measurer | None:
         cal, processing = self.calibration, self.settings.processing
         if cal.generation != self._generation or processing is not self._processing:
@@ -154,7 +167,8 @@ class CameraProcessor:
         return pending
 
     def collect(self, pending: Pending) -> None:
-        """Wait for the outcome of a frame handed to the child process (no-op when measured here)."""
+        """Wait for the outcome of a frame handed to the child process (no-op when measured here);
+        frames are collected in the order they were begun."""
         if pending.outcome is None and pending.failure is None and self._process is not None:
             pending.outcome = self._process.collect()
         pending.t_measured = time.perf_counter()

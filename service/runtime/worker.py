@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
+import multiprocessing.connection
 import threading
 import time
 from collections import deque
@@ -42,10 +43,10 @@ from drivers.base import DriverError, Frame, RobotDriver
 from drivers.registry import make_camera, make_robot
 from service.core.measurement import Measurement
 from service.core.results import Failure, Reason
-from service.runtime.acquisition import CameraChannel, DeviceState
+from service.runtime.acquisition import CameraChannel, DeviceState, Wakeup
 from service.runtime.calibration_state import CalibrationState
 from service.runtime.cell_runtime import CellRuntime, with_stated_latencies
-from service.runtime.measure_process import MeasureProcessError
+from service.runtime.measure_process import MEASURE_TIMEOUT_S, MeasureProcessError
 from service.runtime.processor import CameraProcessor, Pending
 from service.runtime.rig_combiner import RIG, RigCombiner
 from service.runtime.solver_process import SolverProcess
@@ -91,7 +92,7 @@ class Worker:
         self.cell = CellRuntime(settings, on_event=self.event)  # the simulated cell and its stand-ins
         # built once: from the stored calibrations (``calib_store``), else the settings' and the simulated cell's
         self.calibration = calibration or CalibrationState(settings, calib_store, self.cell)
-        self._wakeup = threading.Condition()
+        self._wakeup = Wakeup()
         self._stop = threading.Event()
         self.cameras: dict[str, CameraChannel] = {}
         self.processors: dict[str, CameraProcessor] = {}
@@ -160,6 +161,7 @@ class Worker:
         self.solver.stop()
         for proc in self.processors.values():
             proc.close()
+        self._wakeup.close()
         with self._lock:
             for _, _, fut in self._waiters:
                 if not fut.done():
@@ -373,25 +375,25 @@ class Worker:
                 log.exception("preparing the measurer of camera %s", proc.name)
         self.processing_ready = True
         self.event("info", "processing_ready", "processing is ready")
-        # one frame in hand: after its pose is collected, a frame already waiting goes to the
-        # measurement (a child process) before this one's flange, storage and fan-out are done here
-        handed: tuple[str, Frame, Pending | Measurement] | None = None
+        # frames handed to the measurement (child processes), oldest first: while one is measured
+        # the next waits in its child's pipe, and each is finished here (flange, storage, fan-out)
+        # while the child measures the next
+        in_flight: deque[tuple[str, Frame, Pending | Measurement]] = deque()
         while not self._stop.is_set():
             self._publish_outages()
-            if handed is None:
-                got = self._next_frame(0.25)
-                if got is None:
-                    continue
-                handed = self._begin(*got)
-            name, frame, pending = handed
+            self._hand_over(in_flight, 0.0 if in_flight else 0.25)
+            if not in_flight:
+                continue
+            name, frame, pending = in_flight.popleft()
             processor = self.processors[name]
             if isinstance(pending, Pending):
+                self._wait_for_outcome(processor, in_flight)
                 try:
                     processor.collect(pending)
                 except Exception as e:
                     pending = self._internal_failure(name, e)
-            got = self._next_frame(0.0)
-            handed = None if got is None else self._begin(*got)
+            if processor.depth > 1:  # measured elsewhere: the next frame goes before this one is finished
+                self._hand_over(in_flight, 0.0)
             if isinstance(pending, Pending):
                 try:
                     result = processor.finish(pending, self.robot, self.robot_state)
@@ -405,6 +407,40 @@ class Worker:
                 combined = self.rig.add(result, self.calibration.rig, self.calibration.field, self.calibration.handeye)
                 if combined is not None:
                     self._publish(RIG, combined, frame)
+
+    def _wait_for_outcome(
+        self, processor: CameraProcessor, in_flight: deque[tuple[str, Frame, Pending | Measurement]]
+    ) -> None:
+        """Wait until the oldest frame's outcome can be collected; a frame arriving meanwhile is
+        handed over at once (it would otherwise wait for this one's outcome, flange and fan-out)."""
+        conn = processor.waitable()
+        if conn is None:
+            return
+        wake = self._wakeup.fileno()
+        deadline = time.monotonic() + MEASURE_TIMEOUT_S
+        try:
+            while not conn.poll(0) and (remaining := deadline - time.monotonic()) > 0:
+                self._wakeup.drain()
+                self._hand_over(in_flight, 0.0)
+                ready = multiprocessing.connection.wait([conn, wake], remaining)
+                if conn in ready or not ready:
+                    return
+        except (OSError, EOFError):
+            return  # the child went away: collect() says so
+
+    def _hand_over(self, in_flight: deque[tuple[str, Frame, Pending | Measurement]], wait_s: float) -> None:
+        """Begin the newest waiting frames while every camera's measurement can take one more.
+
+        A frame is taken from its slot only when it can be begun at once: one held back would
+        be older than the slot's newest by the time it is.
+        """
+        depth = min((p.depth for p in self.processors.values()), default=1)
+        while len(in_flight) < depth and all(p.can_begin() for p in self.processors.values()):
+            got = self._next_frame(wait_s)
+            if got is None:
+                return
+            in_flight.append(self._begin(*got))
+            wait_s = 0.0
 
     def _begin(self, name: str, frame: Frame) -> tuple[str, Frame, Pending | Measurement]:
         try:
