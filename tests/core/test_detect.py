@@ -8,6 +8,7 @@ uncoded targets, head-on at 1 m (disks of 5.4 and 9 px radius).
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -298,3 +299,20 @@ def test_a_reused_mask_buffer_gives_the_same_blobs(reference):
         assert again_rej.counts == rejections.counts
     wrong = np.zeros((10, 10), dtype=np.uint8)  # another shape: ignored
     assert np.array_equal(detect_blobs(frame.image, mask_buffer=wrong)[0].uv, blobs.uv)
+
+
+def test_blobs_of_no_disk_shape_are_rejected_without_being_measured():
+    # printed glyphs (an L, a C, a 7: bright, but filling under half of their moments' ellipse) are
+    # misshapen before any window is measured; the disks beside them are measured as ever
+    image = np.full((200, 300), 12, np.uint8)
+    disks = np.array([[40.3, 50.6], [150.2, 60.1], [250.7, 140.4]])
+    for u, v in disks:
+        cv2.circle(image, (round(u * 16), round(v * 16)), 6 * 16, 200, -1, cv2.LINE_AA, shift=4)
+    cv2.polylines(image, [np.array([[60, 120], [60, 170], [100, 170]], np.int32)], False, 180, 4)
+    cv2.ellipse(image, (170, 150), (22, 22), 0, 45, 315, 180, 4)
+    cv2.polylines(image, [np.array([[210, 30], [250, 30], [225, 90]], np.int32)], False, 180, 4)
+    image = cv2.GaussianBlur(image, (0, 0), 0.8)
+    blobs, rejected = detect_blobs(image)
+    assert rejected.counts["merged_or_misshapen"] == 3
+    assert rejected.work.n_measured == 3  # the disks only
+    assert np.all(match(blobs, disks, tol_px=0.1) >= 0) and len(blobs) == 3

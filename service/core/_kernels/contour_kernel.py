@@ -15,6 +15,8 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 
+from service.core._kernels import trace_kernel
+
 
 @njit(cache=True, nogil=True, inline="always")
 def _maximum(a: float, b: float) -> float:  # np.maximum: NaN-propagating
@@ -173,7 +175,9 @@ def windows_kernel(box_centre, reach, mu, centre, todo, near, width, height, win
 
 @lru_cache(maxsize=1)  # once per process
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the kernels for the types :mod:`service.core.targets.detect` passes."""
+    """Compile (or load from numba's cache) the kernels for the types :mod:`service.core.targets.detect` passes
+    (and the contour tracing's, :mod:`service.core._kernels.trace_kernel`)."""
+    trace_kernel.warm_up()
     pts = np.array([[0, 0], [2, 0], [2, 2], [0, 2]], dtype=np.int32)
     box, area_px, poly_area, centre, mu, box_centre, reach = contour_stats_kernel(
         pts, np.array([0], dtype=np.intp), np.array([4], dtype=np.intp)

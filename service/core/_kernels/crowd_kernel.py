@@ -217,23 +217,36 @@ def mask_windows_kernel(img, cu, cv, half, crowd, own, seg):
         total += s * s
     buf = np.empty(max(total, 1), dtype=np.float32)
     one = np.float32(1.0)
+    # scratch for the largest window, once: a fresh array per window cost more than its pixels
+    s_max = 1
+    for k in range(crowd.size):
+        s_max = max(s_max, 2 * half[crowd[k]] + 1)
+    rim = np.empty(8 * s_max + 8, dtype=np.float32)
+    outside = np.empty((s_max, s_max), dtype=np.bool_)
+    bright = np.empty((s_max, s_max), dtype=np.bool_)
+    hrow = np.empty((s_max, s_max), dtype=np.int32)
     for k in range(crowd.size):
         i = crowd[k]
         h = half[i]
         s = 2 * h + 1
         P = buf[boff[i] : boff[i] + s * s].reshape(s, s)
         for a in range(s):
+            row = img[cv[i] - h + a]
             for b in range(s):
-                P[a, b] = np.float32(img[cv[i] - h + a, cu[i] - h + b])
-        # the rim (h - 1 < distance <= h + 1/2): its lower quartile
+                P[a, b] = np.float32(row[cu[i] - h + b])
+        # the rim (h - 1 < distance <= h + 1/2): its lower quartile. Per row, the pixels between the
+        # disk inside the rim (|du| <= wi) and the circle (|du| <= wo)
         r2, ri2 = (h + 0.5) ** 2, (h - 1.0) ** 2
-        rim = np.empty(8 * s + 8, dtype=np.float32)
         m = 0
         for a in range(s):
             dv2 = (a - h) * (a - h)
-            for b in range(s):
-                d2 = (b - h) * (b - h) + dv2
-                if d2 <= r2 and d2 > ri2:
+            wo = int(np.sqrt(r2 - dv2))  # r2 - dv2 >= h + 1/4: never just below a square
+            wi = int(np.sqrt(ri2 - dv2)) if ri2 >= dv2 else -1  # an integer's root: exact for a square
+            for b in range(h - wo, h - wi if wi >= 0 else h + wo + 1):
+                rim[m] = P[a, b]
+                m += 1
+            if wi >= 0:
+                for b in range(h + wi + 1, h + wo + 1):
                     rim[m] = P[a, b]
                     m += 1
         level0 = _kth_smallest(rim[:m], m // 4)
@@ -241,35 +254,54 @@ def mask_windows_kernel(img, cu, cv, half, crowd, own, seg):
         q0 = np.float32(qa * x0 * x0 + 2 * qb * x0 * y0 + qc * y0 * y0)
         q1, q2 = np.float32(-2 * (qa * x0 + qb * y0)), np.float32(-2 * (qb * x0 + qc * y0))
         q3, q4, q5 = np.float32(qa), np.float32(2 * qb), np.float32(qc)
-        outside = np.zeros((s, s), dtype=np.bool_)
-        bright = np.zeros((s, s), dtype=np.bool_)
         thr = level0 + np.float32(seg[i])
+        a_lo, a_hi, b_lo, b_hi = s, -1, s, -1  # the bright pixels' box
         for a in range(s):
             dv = np.float32(a - h)
+            n_row = 0
             for b in range(s):
                 du = np.float32(b - h)
                 val = q0 + q1 * du + q2 * dv + q3 * (du * du) + q4 * (du * dv) + q5 * (dv * dv)
-                outside[a, b] = val > one
-                bright[a, b] = outside[a, b] and P[a, b] > thr
-        # a 7 x 7 dilation of the bright pixels, inside the window: along rows, then along columns
-        # (running counts over 7)
-        hrow = np.zeros((s, s), dtype=np.int32)
-        for a in range(s):
+                out_ab = val > one
+                br = out_ab & (P[a, b] > thr)
+                outside[a, b] = out_ab
+                bright[a, b] = br
+                n_row += br
+            if n_row:
+                a_lo, a_hi = min(a_lo, a), a
+                for b in range(s):
+                    if bright[a, b]:
+                        b_lo = min(b_lo, b)
+                        break
+                for b in range(s - 1, -1, -1):
+                    if bright[a, b]:
+                        b_hi = max(b_hi, b)
+                        break
+        if a_hi < 0:
+            continue  # nothing bright outside the blob's own region: the window stays as it is
+        # a 7 x 7 dilation of the bright pixels, inside the window, within their box grown by 3 px:
+        # along rows (running counts over 7), then along columns
+        c0, c1 = max(b_lo - 3, 0), min(b_hi + 3, s - 1)
+        for a in range(a_lo, a_hi + 1):
             cnt = 0
-            for b in range(s + 3):
-                if b < s:
-                    cnt += bright[a, b]
-                if b >= 7:
-                    cnt -= bright[a, b - 7]
-                if b >= 3:
-                    hrow[a, b - 3] = cnt
-        for b in range(s):
+            for b in range(b_lo, min(b_hi, c0 + 2) + 1):  # the count about column c0 - 1
+                cnt += bright[a, b]
+            for c in range(c0, c1 + 1):
+                if c + 3 <= b_hi:
+                    cnt += bright[a, c + 3]
+                if c - 4 >= b_lo:
+                    cnt -= bright[a, c - 4]
+                hrow[a, c] = cnt
+        t0, t1 = max(a_lo - 3, 0), min(a_hi + 3, s - 1)
+        for c in range(c0, c1 + 1):
             cnt = 0
-            for a in range(s + 3):
-                if a < s:
-                    cnt += hrow[a, b]
-                if a >= 7:
-                    cnt -= hrow[a - 7, b]
-                if a >= 3 and cnt > 0 and outside[a - 3, b]:
-                    P[a - 3, b] = level0
+            for a in range(a_lo, min(a_hi, t0 + 2) + 1):  # the count about row t0 - 1
+                cnt += hrow[a, c]
+            for t in range(t0, t1 + 1):
+                if t + 3 <= a_hi:
+                    cnt += hrow[t + 3, c]
+                if t - 4 >= a_lo:
+                    cnt -= hrow[t - 4, c]
+                if cnt > 0 and outside[t, c]:
+                    P[t, c] = level0
     return buf, boff

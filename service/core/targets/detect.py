@@ -39,10 +39,11 @@ from numpy.typing import NDArray
 
 from service.core.results import Reason, SolveError
 from service.core.targets.detect_background import COARSE_STEP, K_SEG, estimate_background, foreground_mask
-from service.core.targets.detect_candidates import find_candidates, window_radii
+from service.core.targets.detect_candidates import find_candidates, misfits, window_radii
 from service.core.targets.detect_types import (
     CUT_OFF,
     DTYPE_MAX,
+    MISSHAPEN,
     REASONS,
     TOO_BIG,
     Blobs,
@@ -69,6 +70,13 @@ def _check_image(image: NDArray[np.generic]) -> Image:
     if min(img.shape) < 2 * COARSE_STEP:
         raise SolveError(Reason.bad_image, f"The image ({img.shape[1]} x {img.shape[0]} px) is too small.")
     return np.ascontiguousarray(img)
+
+
+def _median(x: NDArray[np.float64]) -> float:
+    """``np.median`` of ``x`` (no NaN), the same value without its overhead (~20 us a frame)."""
+    srt = np.sort(x, axis=None)
+    k = srt.size // 2
+    return float(srt[k]) if srt.size % 2 else float(0.5 * (srt[k - 1] + srt[k]))
 
 
 def _levels(img: Image, settings: DetectSettings) -> tuple[float, float, float]:
@@ -126,6 +134,11 @@ def detect_blobs(
     ct, reason = cand.contours, cand.reason
     todo = (reason < 0).nonzero()[0]
     radius, own, limited = window_radii(ct, todo, cand.near, img.shape, settings.window_px)
+    # blobs of no disk's shape are not measured; their windows' sizes still set those of their step
+    fit = ~misfits(ct, todo)
+    if not fit.all():
+        reason[todo[~fit]] = MISSHAPEN
+        todo, radius, own, limited = todo[fit], radius[fit], own[fit], limited[fit]
     tu, tv = ct.box_centre[todo, 0], ct.box_centre[todo, 1]
     meas, placed = measure_all(img, tu, tv, radius, back.at(back.seg, tu, tv), full, own)
     wr, sigma, fill = assess(meas, placed, settings, np.maximum(contrast, K_PEAK * back.at(back.noise, tu, tv)))
@@ -142,7 +155,7 @@ def detect_blobs(
         int(todo.size),
         cand.n_pairs,
         cand.n_visits,
-        float(np.median(back.tiles)),
+        _median(back.tiles),
         float(back.tiles.max()),
     )
     return (
