@@ -21,8 +21,16 @@ def test_the_probe_reads_exposure_and_seq_without_parsing_the_message():
 
 @pytest.mark.slow  # starts the service and renders the replay frames
 def test_a_row_of_the_service_benchmark_is_measured_from_the_messages():
-    row = bench_service.measure(rate_hz=100, n_clients=3, seconds=3.0, warmup_s=1.0)
+    # the two others subscribe pose-only (targets=false), the probe takes whole messages
+    row = bench_service.measure(rate_hz=100, n_clients=3, seconds=3.0, warmup_s=1.0, pose_only=True)
+    assert row["pose_only"] is True and row["clients"] == 3
     assert 20 < row["results_per_s"] <= 110  # a loaded 2-core machine still keeps a good part of 100 Hz
     assert 0.0 <= row["lost_fraction"] < 0.8
     assert 0.0 < row["ws_p50_ms"] <= row["ws_p99_ms"] <= row["ws_max_ms"] < 5000.0
     assert row["commit_p99_ms"] > 0.0 and row["cpu_ms_per_frame"] > 0.0
+
+
+def test_the_client_mixes_are_numbers_with_p_for_pose_only_others():
+    assert bench_service.parse_clients("1, 50,50p") == ((1, False), (50, False), (50, True))
+    with pytest.raises(ValueError):
+        bench_service.parse_clients("many")

@@ -30,7 +30,7 @@ def _service(args: argparse.Namespace) -> str:
     from service.bench import service as bench_service
 
     rates = tuple(float(r) for r in args.rates.split(","))
-    clients = tuple(int(c) for c in args.clients.split(","))
+    clients = bench_service.parse_clients(args.clients)
     return bench_service.run(rates_hz=rates, clients=clients, seconds=args.seconds)
 
 

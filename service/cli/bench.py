@@ -31,7 +31,11 @@ def add_parser(subparsers: Subparsers) -> None:
     b.add_argument("--seed", type=int, default=1)
     b.add_argument("--rounds", type=int, default=5, help="repetitions of each fault for the faults section")
     b.add_argument("--rates", default="100,250,500,1000", help="camera frame rates, Hz, for the service section")
-    b.add_argument("--clients", default="1,50", help="numbers of WebSocket clients for the service section")
+    b.add_argument(
+        "--clients",
+        default="1,50,50p",
+        help="numbers of WebSocket clients for the service section (50p: the others than the probe pose-only)",
+    )
     b.add_argument("--seconds", type=float, default=10.0, help="measured seconds per row of the service section")
     b.set_defaults(func=run)
 
