@@ -65,6 +65,17 @@ def prometheus_text(worker: Any, hub: Hub) -> str:
         "median processing time per frame over the last 200 frames",
         [_line("posecell_processing_ms", p["processing_ms_median"])],
     )
+    measurement = p.get("measurement") or {}
+    family(
+        "posecell_measure_process_restarts_total",
+        "counter",
+        "measurement child processes replaced after dying or hanging",
+        [
+            _line("posecell_measure_process_restarts_total", m.get("restarts", 0), camera=n)
+            for n, m in measurement.items()
+            if m.get("in") == "process"
+        ],
+    )
     ws = hub.stats()
     family("posecell_ws_clients", "gauge", "connected WebSocket clients", [_line("posecell_ws_clients", ws["clients"])])
     family(
@@ -72,6 +83,12 @@ def prometheus_text(worker: Any, hub: Hub) -> str:
         "counter",
         "WebSocket messages dropped for slow clients",
         [_line("posecell_ws_dropped_total", ws["dropped_total"])],
+    )
+    family(
+        "posecell_ws_sent_direct_total",
+        "counter",
+        "WebSocket messages written straight to the socket (the others went through the client's queue)",
+        [_line("posecell_ws_sent_direct_total", ws.get("sent_direct", 0))],
     )
     st = h.get("storage") or {}
     for key in ("queued", "written", "dropped"):

@@ -46,6 +46,12 @@ def test_a_killed_measurement_child_costs_a_frame_with_a_sentence_then_poses_go_
     m2 = live.wait_for(lambda h: h["processing"]["measurement"]["cam0"]["restarts"] >= 1, what="a restart")
     assert m2["processing"]["measurement"]["cam0"]["pid"] not in (None, m["pid"])
     assert m2["status"] == "ok"
+    with live.client() as c:
+        metrics = c.get("/metrics").text
+    line = next(
+        x for x in metrics.splitlines() if x.startswith('posecell_measure_process_restarts_total{camera="cam0"}')
+    )
+    assert float(line.rsplit(" ", 1)[1]) >= 1
 
 
 def test_measure_in_thread_is_applied_at_run_time_and_back(live):
