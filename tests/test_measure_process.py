@@ -168,3 +168,19 @@ def test_no_shared_buffer_file_is_left_behind(frames):
     process.close()
     after = set(os.listdir("/dev/shm")) if os.path.isdir("/dev/shm") else set()
     assert not {n for n in after - before if n.startswith("posecell-frames-")}
+
+
+def test_a_child_that_cannot_be_started_is_a_sentence_for_every_frame_and_one_log_line(monkeypatch, caplog):
+    from service.runtime import measure_process
+
+    def no_processes():
+        raise OSError(11, "Resource temporarily unavailable")  # EAGAIN: fork refused
+
+    monkeypatch.setattr(measure_process, "_fork_server", no_processes)
+    process = MeasureProcess("cam0")
+    with caplog.at_level("ERROR", logger="service.runtime.measure_process"):
+        for _ in range(3):
+            with pytest.raises(MeasureProcessError, match=r"camera cam0 could not be started.*temporarily unavailable"):
+                process.configure(reference_camera(), reference_field(), MeasureSettings())
+    assert sum("could not be started" in r.getMessage() for r in caplog.records) == 1
+    assert process.pid is None

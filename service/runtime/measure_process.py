@@ -98,6 +98,7 @@ class MeasureProcess:
         self._lost_frames = 0  # frames that were in flight when the child was lost
         self._lost_message = ""
         self._paths: list[str] = []  # buffer files whose name the child has not removed yet
+        self._start_failed = False
         self.restarts = 0  # children replaced after dying or hanging
         self.measure_timeout_s = MEASURE_TIMEOUT_S
 
@@ -195,10 +196,18 @@ class MeasureProcess:
 
     def _start(self) -> None:
         assert self._setup is not None
-        ctx = _fork_server()
-        parent, child = ctx.Pipe()
-        proc = ctx.Process(target=serve, args=(child,), name=f"posecell-measure-{self.camera_name}", daemon=True)
-        proc.start()
+        try:
+            ctx = _fork_server()
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(target=serve, args=(child,), name=f"posecell-measure-{self.camera_name}", daemon=True)
+            proc.start()
+        except (OSError, RuntimeError) as e:  # no processes or pipes left, a main module without its guard
+            message = f"the measurement process of camera {self.camera_name} could not be started: {e!r}"
+            if not self._start_failed:  # said once, not at the frame rate; each frame's result says it too
+                log.error("%s", message)
+            self._start_failed = True
+            raise MeasureProcessError(message) from None
+        self._start_failed = False
         child.close()
         self._proc, self._conn = proc, parent
         self._lost_frames = 0
