@@ -169,3 +169,31 @@ def test_flange_sigma_grows_with_the_lever_of_the_rotation():
     lever = np.radians(0.001) * 100.0  # a rotation about x moves a point 100 mm along z in y
     assert sp[1] == pytest.approx(np.hypot(0.01, lever)) and sp[0] == pytest.approx(0.01)
     assert sr.tolist() == pytest.approx([0.001, 0.0, 0.0])
+
+
+def test_flange_sigma_with_the_resections_covariance_is_the_scatter_of_the_flange():
+    from service.core.geometry import so3
+    from service.core.geometry.frames import inv_T
+
+    rng = np.random.default_rng(5)
+    T_fc = so3.T_from_rotvec([2.9, 0.3, -0.2], [150.0, -80.0, 1000.0])  # looking down at the field
+    X = so3.T_from_rotvec([0.0, 0.0, 0.4], [30.0, -20.0, 120.0])
+    Z = so3.T_from_rotvec([0.1, -0.05, 1.2], [900.0, 200.0, -300.0])
+    # a camera's typical covariance: a sideways shift and a tilt explain the image alike: the
+    # centre's error follows the rotation's about the target ~1000 mm ahead (dt = -[v]x dθ + noise)
+    D = np.diag([1e-4, 1e-4, 3e-5]) ** 2
+    K = -so3.skew(T_fc[:3, :3] @ np.array([0.0, 0.0, 1000.0]))
+    N = np.diag([0.004, 0.004, 0.01]) ** 2
+    cov = np.block([[D, D @ K.T], [K @ D, K @ D @ K.T + N]])
+    draws = rng.multivariate_normal(np.zeros(6), cov, size=20_000)
+    flange = []
+    for d in draws:
+        T = np.eye(4)
+        T[:3, :3] = so3.R_from_rotvec(d[:3]) @ T_fc[:3, :3]  # the resection's convention: on the left
+        T[:3, 3] = T_fc[:3, 3] + d[3:]
+        flange.append((Z @ T @ inv_T(X))[:3, 3])
+    scatter = np.std(np.array(flange), axis=0)
+    sp, _ = flange_sigma(T_fc, np.sqrt(np.diag(cov)[3:]), np.degrees(np.sqrt(np.diag(cov)[:3])), X, Z, cov)
+    assert sp == pytest.approx(scatter, rel=0.03)
+    diag, _ = flange_sigma(T_fc, np.sqrt(np.diag(cov)[3:]), np.degrees(np.sqrt(np.diag(cov)[:3])), X, Z)
+    assert np.max(np.abs(diag / scatter - 1)) > 0.1  # without the correlation it is another figure

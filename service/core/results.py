@@ -187,6 +187,9 @@ class PoseResult:
     n_iter: int = 0
 
     ok: bool = True
+    # (6, 6) over [rotation (3) rad about the field axes, position (3) mm], as the resection gives it
+    # (ResectionResult.covariance): the correlation of position and rotation the σ leave out
+    covariance: Any = None
 
     @property
     def n_coded(self) -> int:

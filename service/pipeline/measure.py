@@ -59,6 +59,7 @@ def pose_result_from_resection(
         sigma0_px=result.sigma0_px,
         targets=targets,
         n_iter=result.n_iter,
+        covariance=result.covariance,
     )
 
 

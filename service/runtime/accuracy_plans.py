@@ -223,23 +223,31 @@ def flange_sigma(
     sigma_rotation_deg: Any,
     T_flange_camera: Array,
     T_base_field: Array,
+    covariance: Any = None,
 ) -> tuple[Array, Array]:
     """σ of the measured flange pose along the base axes: ``(position (3,) mm, rotation (3,) deg)``.
 
-    The camera pose's σ (position along the field axes, small rotations about them) carried to
-    the flange origin, which sits at the lever ``L = R_field_camera @ t_camera_flange`` from the
-    camera: ``δp = δt + δθ × L``, so ``Σ_p = diag(σ_t²) + [L]× diag(σ_θ²) [L]×ᵀ``, then turned into
-    the base axes by ``R_base_field``. The resection's correlation between position and
-    rotation is not reported, so it is left out; with the lever ~0.1 of the viewing distance the
-    rotation's part is small either way.
+    The camera pose's uncertainty carried to the flange origin, which sits at the lever
+    ``L = R_field_camera @ t_camera_flange`` from the camera: ``δp = δt + δθ × L = δt - [L]× δθ``
+    (``δθ`` a small rotation about the field axes on the left, as the resection's covariance has
+    it), then turned into the base axes by ``R_base_field``. With the resection's ``covariance``
+    (6, 6) over ``[δθ, δt]`` the correlation of position and rotation is carried too — it is
+    strong (a sideways shift of the camera and a tilt explain the image alike), and without it
+    the σ along the base axes came out up to ~2x smaller than the scatter of the measured flange
+    at rest; without it, only the σ are combined, as independent.
     """
-    s_t = np.asarray(sigma_position_mm, dtype=np.float64).reshape(3)
-    s_r = np.radians(np.asarray(sigma_rotation_deg, dtype=np.float64).reshape(3))
     t_camera_flange = inv_T(T_flange_camera)[:3, 3]
     L = T_field_camera[:3, :3] @ t_camera_flange
-    S = skew(L)
-    cov_p = np.diag(s_t**2) + S @ np.diag(s_r**2) @ S.T
+    cov = None if covariance is None else np.asarray(covariance, dtype=np.float64)
+    if cov is not None and cov.shape == (6, 6) and np.all(np.isfinite(cov)):
+        J = np.hstack([-skew(L), np.eye(3)])  # δp = J @ [δθ, δt]
+        cov_p, cov_r = J @ cov @ J.T, cov[:3, :3]
+    else:
+        s_t = np.asarray(sigma_position_mm, dtype=np.float64).reshape(3)
+        s_r = np.radians(np.asarray(sigma_rotation_deg, dtype=np.float64).reshape(3))
+        S = skew(L)
+        cov_p, cov_r = np.diag(s_t**2) + S @ np.diag(s_r**2) @ S.T, np.diag(s_r**2)
     R_bf = T_base_field[:3, :3]
     cov_p_base = R_bf @ cov_p @ R_bf.T
-    cov_r_base = R_bf @ np.diag(s_r**2) @ R_bf.T
+    cov_r_base = R_bf @ cov_r @ R_bf.T
     return np.sqrt(np.diag(cov_p_base)), np.degrees(np.sqrt(np.diag(cov_r_base)))

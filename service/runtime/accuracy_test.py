@@ -329,6 +329,7 @@ class AccuracyTests:
             m.result.sigma_rotation_deg,
             handeye.T_flange_camera,
             handeye.T_base_field,
+            m.result.covariance,
         )
         t_ns = int(m.t_unix_ns)
         s: Sample = {

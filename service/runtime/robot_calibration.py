@@ -243,6 +243,7 @@ def capture(worker: Any, camera: str, frames: int, pose: int | None = None, hold
             m.result.sigma_rotation_deg,
             handeye.T_flange_camera,
             handeye.T_base_field,
+            m.result.covariance,
         )
         s_p.append(sp)
         s_r.append(sr)
