@@ -90,6 +90,25 @@ class StrobeConfig(_Section):
     duration_us: float | None = Field(None, gt=0, le=1e6, description="timer sources only: pulse length, µs, (0, 1 s]")
 
 
+class AutoExposureConfig(_Section):
+    """The exposure control on the targets' peaks (``service/runtime/exposure.py``)."""
+
+    enabled: bool = True
+    target_peak: float = Field(
+        0.75, gt=0.1, lt=1, description="the brightest targets' peak above background, share of full scale, (0.1, 1)"
+    )
+    min_us: float = Field(20.0, gt=0, le=10_000_000, description="shortest exposure it sets, µs, (0, 10 s]")
+    max_us: float = Field(
+        10_000.0, gt=0, le=10_000_000, description="longest exposure it sets, µs, (0, 10 s] (motion blur grows with it)"
+    )
+
+    @model_validator(mode="after")
+    def _ordered(self) -> AutoExposureConfig:
+        if self.min_us > self.max_us:
+            raise ValueError(f"auto_exposure.min_us ({self.min_us:g}) is above max_us ({self.max_us:g})")
+        return self
+
+
 _ROI_MAX_PX = 65_535
 _RoiOffsetPx = Annotated[int, Field(ge=0, le=_ROI_MAX_PX)]
 _RoiSizePx = Annotated[int, Field(gt=0, le=_ROI_MAX_PX)]
@@ -114,6 +133,8 @@ class CameraConfig(_Section):
         None, description="x, y, width, height, px: offsets [0, 65 535], sizes [1, 65 535]; none: full sensor"
     )
     strobe: StrobeConfig | None = StrobeConfig()
+    # from exposure_us, the exposure follows the targets' brightness within the limits (off: fixed)
+    auto_exposure: AutoExposureConfig = AutoExposureConfig()
     # smallest delay from exposure end to the frame's arrival (readout + transfer): the part of
     # the latency the clock mapping cannot see; the worker reports what remains
     transport_latency_s: float = Field(0.004, ge=0, le=1, description="readout + transfer delay, s, [0, 1]")

@@ -228,3 +228,10 @@ def test_processing_refuses_area_limits_out_of_order(tmp_path):
     cfg.write_text("[processing]\nmin_area_px = 500\nmax_area_px = 400\n")
     with pytest.raises(SettingsError, match="min_area_px 500 is larger than max_area_px 400"):
         load_settings(cfg)
+
+
+def test_auto_exposure_refuses_limits_out_of_order(tmp_path):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text('[[cameras]]\nname = "cam0"\n[cameras.auto_exposure]\nmin_us = 5000\nmax_us = 100\n')
+    with pytest.raises(SettingsError, match=r"auto_exposure.min_us \(5000\) is above max_us \(100\)"):
+        load_settings(cfg)

@@ -31,6 +31,7 @@ from service.core.targets.codes import FAMILIES, POSECELL12, CodeFamily
 from service.core.targets.decode import read_codes
 from service.core.targets.decode import warm_up as decode_warm_up
 from service.core.targets.detect import Blobs, DetectSettings, detect_blobs, measure_windows
+from service.core.targets.detect_types import DTYPE_MAX
 from service.core.targets.field import Field
 from service.core.targets.identify import eccentricity_px, match_coded, match_predicted, project_field
 
@@ -152,6 +153,33 @@ class MeasureSettings:
 
 
 @dataclass(frozen=True)
+class Brightness:
+    """How bright a frame's targets came out, in the image's DN: what the exposure control steers by.
+
+    n_measured -- disks measured (the ROI windows' or the full frame's blobs)
+    peak_dn -- the 90th percentile of their brightest pixels (the brightest tenth may clip first)
+    background_dn -- the median of their local backgrounds
+    n_saturated -- blobs rejected as saturated (full frame only; a saturated ROI window is not found)
+    full_dn -- the saturation level
+    """
+
+    n_measured: int
+    peak_dn: float
+    background_dn: float
+    n_saturated: int
+    full_dn: float
+
+    @classmethod
+    def of(cls, blobs: Blobs, n_saturated: int, full_dn: float) -> Brightness:
+        n = len(blobs)
+        if n == 0:
+            return cls(0, 0.0, 0.0, n_saturated, full_dn)
+        k = min(n - 1, int(0.9 * n))
+        peak = float(np.partition(blobs.peak_dn, k)[k])  # a partition, not a sort: ~200 disks a frame
+        return cls(n, peak, float(np.median(blobs.background_dn)), n_saturated, full_dn)
+
+
+@dataclass(frozen=True)
 class Outcome:
     """One frame's result, how it was obtained and what it cost."""
 
@@ -160,6 +188,7 @@ class Outcome:
     timings_ms: dict[str, float]
     n_blobs: int = 0
     rejections: dict[str, int] | None = None
+    brightness: Brightness | None = None  # None: the image could not be read at all
 
 
 #: ROI windows about precise predictions allow this fraction of ``roi_prediction_error_px``
@@ -190,6 +219,13 @@ def detect_settings_for_range(
         min_area_px=max(detect.min_area_px, min_area),
         max_area_px=max(min(detect.max_area_px, max_area), min_area + 1),
     )
+
+
+def _full_dn(image: NDArray[np.generic], detect: DetectSettings) -> float:
+    """The image's saturation level, DN (the detector's: ``saturation_dn`` or the dtype's maximum)."""
+    if detect.saturation_dn is not None:
+        return float(detect.saturation_dn)
+    return DTYPE_MAX.get(image.dtype.char, 1.0)  # the images measured are 8- or 16-bit
 
 
 def _nominal(camera: BrownFraser) -> bool:
@@ -319,15 +355,15 @@ class FrameMeasurer:
             return Outcome(Failure.from_error(e), "full", clock.ms)
         clock.lap("detect")
         counts = rejections.counts
+        brightness = Brightness.of(blobs, counts.get("saturated", 0), _full_dn(image, s.detect))
         # rounded: the detector caches its constants per settings
         self._roi_detect = replace(s.detect, noise_dn=round(rejections.work.noise_dn, 1))
         try:
             result = self._identify_and_resect(image, blobs, clock)
         except SolveError as e:
-            return Outcome(
-                Failure.from_error(_with_calibration_hint(e, self.camera)), "full", clock.ms, len(blobs), counts
-            )
-        return Outcome(result, "full", clock.ms, len(blobs), counts)
+            failure = Failure.from_error(_with_calibration_hint(e, self.camera))
+            return Outcome(failure, "full", clock.ms, len(blobs), counts, brightness)
+        return Outcome(result, "full", clock.ms, len(blobs), counts, brightness)
 
     def _identify_and_resect(self, image: NDArray[np.generic], blobs: Blobs, clock: _Clock) -> PoseResult:
         s = self.settings
@@ -406,14 +442,15 @@ class FrameMeasurer:
         clock.lap("windows")
         if measured is None:
             return None
-        rows_ok, uv_ok = measured
+        rows_ok, uv_ok, blobs = measured
         try:
             result = self._finish(rows_ok, uv_ok, T_pred, clock)
         except SolveError:
             return None
         if result.sigma0_px > s.roi_max_sigma0_px:
             return None
-        return Outcome(result, "roi", clock.ms, len(rows_ok))
+        brightness = Brightness.of(blobs, 0, _full_dn(image, s.detect))
+        return Outcome(result, "roi", clock.ms, len(rows_ok), None, brightness)
 
     def _measure_targets(
         self,
@@ -423,10 +460,11 @@ class FrameMeasurer:
         depth: Array,
         slack: float,
         check_centred: bool = False,
-    ) -> tuple[NDArray[np.int64], Array] | None:
+    ) -> tuple[NDArray[np.int64], Array, Blobs] | None:
         """Field rows and measured pixels (N, 2) of the targets found in windows about their
-        predictions; None when too few are found or, with ``check_centred``, when a disk lies
-        further from its window's centre than ``slack`` times the prediction allowance."""
+        predictions, and the disks measured; None when too few are found or, with
+        ``check_centred``, when a disk lies further from its window's centre than ``slack`` times
+        the prediction allowance."""
         s = self.settings
         half = self._window_half_size(rows, depth, slack)
         try:
@@ -439,7 +477,7 @@ class FrameMeasurer:
             return None
         if check_centred and worst_px2 > (slack * s.roi_prediction_error_px) ** 2:
             return None
-        return rows_ok, uv
+        return rows_ok, uv, blobs
 
     def _window_half_size(self, rows: NDArray[np.int64], depth: Array, slack: float = 1.0) -> NDArray[np.int64]:
         """Half window (px) per target at ``depth`` (mm): the disk's image radius, the blur, and the prediction error.

@@ -16,7 +16,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import Any
 
@@ -142,6 +142,7 @@ class CameraChannel:
         self._last_seq: int | None = None
         self._connected_ns = time.monotonic_ns()
         self.command_error: dict[int, str] = {}
+        self.exposure_refused = ""  # the driver's sentence when it refused an exposure step
 
     def start(self) -> None:
         self._thread.start()
@@ -159,6 +160,11 @@ class CameraChannel:
 
     def request_trigger(self) -> None:
         self._commands.put(("trigger", None, None))
+
+    def request_exposure(self, exposure_us: float) -> None:
+        """Change only the exposure, without waiting (the exposure control's step); a refusal is
+        kept in :attr:`exposure_refused` (the device has no settable exposure: stop asking)."""
+        self._commands.put(("exposure", float(exposure_us), None))
 
     def request_settings(self, settings: CameraSettings, timeout_s: float = 5.0) -> str:
         """Apply new settings in the owner thread; returns "" or the driver's error sentence."""
@@ -207,7 +213,13 @@ class CameraChannel:
                     self.driver.configure(arg)
                     self.settings = arg
                     self._last_seq = None
+                elif kind == "exposure":  # an exposure step: the frame counter runs on, gaps are still gaps
+                    new = replace(self.settings, exposure_us=arg)
+                    self.driver.configure(new)
+                    self.settings = new
             except DriverError as e:
+                if kind == "exposure":
+                    self.exposure_refused = str(e)
                 if done is not None:
                     self.command_error[id(done)] = str(e)
                 self._on_event("warning", f"camera_{kind}_failed", f"camera {self.name}: {e}")
@@ -289,4 +301,5 @@ class CameraChannel:
             "seq_gaps": c.seq_gaps,
             "last_frame_age_s": None if age_s is None else round(age_s, 3),
             "trigger": str(self.settings.trigger),
+            "exposure_us": self.settings.exposure_us,
         }

@@ -39,13 +39,14 @@ from typing import Any
 
 import numpy as np
 
-from drivers.base import DriverError, Frame, RobotDriver
+from drivers.base import DriverError, Frame, RobotDriver, TriggerMode
 from drivers.registry import make_camera, make_robot
 from service.core.measurement import Measurement
 from service.core.results import Failure, Reason
 from service.runtime.acquisition import CameraChannel, DeviceState, Wakeup
 from service.runtime.calibration_state import CalibrationState
 from service.runtime.cell_runtime import CellRuntime, with_stated_latencies
+from service.runtime.exposure import ExposureControl, ExposureLimits
 from service.runtime.measure_process import MEASURE_TIMEOUT_S, MeasureProcessError
 from service.runtime.processor import CameraProcessor, Pending
 from service.runtime.rig_combiner import RIG, RigCombiner
@@ -96,6 +97,7 @@ class Worker:
         self._stop = threading.Event()
         self.cameras: dict[str, CameraChannel] = {}
         self.processors: dict[str, CameraProcessor] = {}
+        self.exposure: dict[str, ExposureControl] = {}  # per camera with automatic exposure
         self.robot: RobotDriver | None = None
         self.robot_state = DeviceState.absent if settings.robot.driver == "none" else DeviceState.starting
         self.robot_error = ""
@@ -180,6 +182,7 @@ class Worker:
             return
         ch = CameraChannel(cfg.name, driver, cfg.camera_settings(), self._wakeup, self.event)
         self.cameras[cfg.name] = ch
+        self._set_exposure_control(cfg)
         self.processors[cfg.name] = CameraProcessor(cfg.name, self.settings, self.calibration)
         ch.start()
 
@@ -223,6 +226,36 @@ class Worker:
             self.event("info" if state is DeviceState.ok else "warning", f"robot_{state}", f"robot: {error or state}")
         self.robot_state, self.robot_error = state, error
 
+    # --- the exposure control ----------------------------------------------------------------------
+
+    def _set_exposure_control(self, cfg: CameraConfig) -> None:
+        """(Re)start the camera's exposure control from its configured exposure, or drop it."""
+        auto = cfg.auto_exposure
+        if not auto.enabled or cfg.exposure_us is None:
+            self.exposure.pop(cfg.name, None)
+            return
+        max_us = auto.max_us
+        if cfg.trigger is TriggerMode.FREE_RUN and cfg.frame_rate_hz:
+            max_us = min(max_us, 0.9e6 / cfg.frame_rate_hz)  # the exposure must fit in the frame period
+        limits = ExposureLimits(target_peak=auto.target_peak, min_us=auto.min_us, max_us=max(auto.min_us, max_us))
+        self.exposure[cfg.name] = ExposureControl(limits, cfg.exposure_us)
+
+    def _steer_exposure(self, name: str, frame: Frame, pending: Pending) -> None:
+        control, ch = self.exposure.get(name), self.cameras.get(name)
+        if control is None or ch is None or pending.outcome is None:
+            return
+        if ch.exposure_refused:  # the device cannot take it (a replay, a camera without manual exposure)
+            self.exposure.pop(name, None)
+            self.event("warning", "exposure_auto_off", f"camera {name}: automatic exposure off: {ch.exposure_refused}")
+            return
+        before_us = control.exposure_us
+        step = control.observe(frame.exposure_us, pending.outcome.brightness)
+        if step is not None:
+            ch.request_exposure(step.exposure_us)
+            self.event(
+                "info", "exposure", f"camera {name}: exposure {before_us:.0f} -> {step.exposure_us:.0f} us ({step.why})"
+            )
+
     # --- run-time changes (from the API's threads) ----------------------------------------------
 
     def reconfigure_camera(self, cfg: CameraConfig) -> str:
@@ -243,6 +276,7 @@ class Worker:
                 if error:
                     return error
             self.processors[cfg.name].set_camera_config(cfg)
+            self._set_exposure_control(cfg)
             self.settings = new
             for proc in self.processors.values():
                 proc.settings = new
@@ -399,6 +433,7 @@ class Worker:
                     result = processor.finish(pending, self.robot, self.robot_state)
                 except Exception as e:
                     result = self._internal_failure(name, e)
+                self._steer_exposure(name, frame, pending)
             else:
                 result = pending
             self._outage_published_ns.pop(name, None)
@@ -574,6 +609,9 @@ class Worker:
     def health(self) -> dict[str, Any]:
         """Device, storage and processing states; ``problems`` says in sentences what is not ok."""
         cams = {name: ch.snapshot() for name, ch in self.cameras.items()}
+        for name, cam in cams.items():
+            control = self.exposure.get(name)
+            cam["auto_exposure"] = {"on": control is not None, "steps": control.steps if control else 0}
         for name, proc in self.processors.items():
             if name not in cams:
                 cams[name] = {"state": str(DeviceState.failed), "error": proc.failed_reason}
