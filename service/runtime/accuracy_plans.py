@@ -33,7 +33,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from service.core.accuracy.iso9283 import iso9283_cube
 from service.core.geometry.frames import inv_T, make_T
 from service.core.geometry.so3 import skew
-from service.core.results import SolveError
+from service.core.results import PoseResult, SolveError
 from service.sim.cell import SimCell
 from service.sim.robot import JointTrajectory, aim_flange, iso230_circle
 
@@ -251,3 +251,15 @@ def flange_sigma(
     cov_p_base = R_bf @ cov_p @ R_bf.T
     cov_r_base = R_bf @ cov_r @ R_bf.T
     return np.sqrt(np.diag(cov_p_base)), np.degrees(np.sqrt(np.diag(cov_r_base)))
+
+
+def measured_flange_sigma(result: PoseResult, T_flange_camera: Array, T_base_field: Array) -> tuple[Array, Array]:
+    """:func:`flange_sigma` of a frame's pose through the hand-eye ``X = T_flange_camera``, ``Z = T_base_field``."""
+    return flange_sigma(
+        result.T_field_camera,
+        result.sigma_position_mm,
+        result.sigma_rotation_deg,
+        T_flange_camera,
+        T_base_field,
+        result.covariance,
+    )

@@ -50,8 +50,8 @@ from service.runtime.accuracy_plans import (
     Table1Params,
     circle_plan,
     circle_trajectories,
-    flange_sigma,
     iso9283_stops,
+    measured_flange_sigma,
     table1_stops,
 )
 from service.sim.robot import JointTrajectory
@@ -323,14 +323,7 @@ class AccuracyTests:
             run.last_problem = f.message or "no robot pose at the exposure"
             return None
         handeye = self.worker.calibration.handeye
-        sp, sr = flange_sigma(
-            m.result.T_field_camera,
-            m.result.sigma_position_mm,
-            m.result.sigma_rotation_deg,
-            handeye.T_flange_camera,
-            handeye.T_base_field,
-            m.result.covariance,
-        )
+        sp, sr = measured_flange_sigma(m.result, handeye.T_flange_camera, handeye.T_base_field)
         t_ns = int(m.t_unix_ns)
         s: Sample = {
             "t_exposure_unix_ns": t_ns,

@@ -37,7 +37,7 @@ from service.core.geometry.so3 import R_from_rotvec, rotvec_between
 from service.core.measurement import iso_wall
 from service.core.results import PoseResult, Reason
 from service.core.robot.kinematics import nominal_model
-from service.runtime.accuracy_plans import REST_TOL_DEG, REST_TOL_MM, REST_WINDOW_S, flange_sigma
+from service.runtime.accuracy_plans import REST_TOL_DEG, REST_TOL_MM, REST_WINDOW_S, measured_flange_sigma
 from service.runtime.handeye_session import SessionError
 from service.runtime.robot_solve import plan_poses, pose_errors, solve_robot
 from service.runtime.solver_process import SolverCrashed
@@ -237,14 +237,7 @@ def capture(worker: Any, camera: str, frames: int, pose: int | None = None, hold
         joints.append(q.mean(axis=0))
         measured.append(f.T_base_flange_measured)
         reported.append(f.T_base_flange)
-        sp, sr = flange_sigma(
-            m.result.T_field_camera,
-            m.result.sigma_position_mm,
-            m.result.sigma_rotation_deg,
-            handeye.T_flange_camera,
-            handeye.T_base_field,
-            m.result.covariance,
-        )
+        sp, sr = measured_flange_sigma(m.result, handeye.T_flange_camera, handeye.T_base_field)
         s_p.append(sp)
         s_r.append(sr)
     k = np.sqrt(frames)  # σ of the mean of independent frames
