@@ -243,6 +243,9 @@
       if (isNum(c.disconnects) && c.disconnects > 0) facts.push(`${c.disconnects} disconnects`);
       if (isNum(c.last_frame_age_s)) facts.push(`last frame ${fix(c.last_frame_age_s, 1)} s ago`);
       if (c.trigger) facts.push(`trigger ${c.trigger}`);
+      if (isNum(c.exposure_us)) {
+        facts.push(`exposure ${fix(c.exposure_us, 0)} µs${c.auto_exposure && c.auto_exposure.on ? " (auto)" : ""}`);
+      }
       const off = offsets[name];
       if (off && isNum(off.offset_ms)) facts.push(`clock offset ${fix(off.offset_ms, 2)} ± ${fix(off.sigma_ms, 2)} ms`);
       card.querySelector(".device-facts").textContent = facts.join(" · ");

@@ -13,6 +13,7 @@ import contextlib
 import itertools
 import json
 import math
+import re
 import shutil
 import subprocess
 import threading
@@ -258,6 +259,7 @@ def test_status_bar_and_device_cards_show_ok_once_the_cell_runs(page: Page) -> N
     cam = '[data-camera="cam0"]'
     page.wait(f"document.querySelector('{cam}')?.dataset.state === 'ok'", "camera cam0 ok")
     assert page.text(f"{cam} .state") == "ok" and page.text(f"{cam} .device-error") == ""
+    assert re.search(r"exposure \d+ µs \(auto\)", page.text(f"{cam} .device-facts"))
     assert page.text("#robot-card .state") == "ok"
     rows = page.js("""[...document.querySelectorAll('#calibration tbody tr')].map(
         r => [r.dataset.kind, r.className, r.cells[1].textContent, r.cells[2].textContent])""")
