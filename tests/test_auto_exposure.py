@@ -129,3 +129,19 @@ def test_without_the_control_an_over_exposed_camera_gives_no_pose(tmp_path):
     assert health["auto_exposure"] == {"on": False, "steps": 0} and health["exposure_us"] == 8000.0
     assert len(results) >= 10 and not any(m.ok for m in results)
     assert {m.reason for m in results} == {"too_few_targets"}
+
+
+def test_a_camera_refusing_the_exposure_step_has_the_control_switched_off(tmp_path, caplog):
+    # a replay of the simulated cell rendered at 8000 us: its frames clip, the control asks for less,
+    # and the replay (recorded images) refuses another exposure than its frames were taken with
+    settings = load_settings(None, state_dir=str(tmp_path))
+    cam = settings.cameras[0].model_copy(
+        update={"driver": "replay", "options": {"source": "sim", "n_frames": 20}, "exposure_us": 8000.0}
+    )
+    worker = Worker(settings.model_copy(update={"cameras": [cam]}))
+    with caplog.at_level("WARNING"):
+        results = _run(worker, 2.0)
+    health = worker.health()["cameras"]["cam0"]
+    assert health["auto_exposure"]["on"] is False and health["exposure_us"] == 8000.0
+    assert any("automatic exposure off" in r.getMessage() and "8000" in r.getMessage() for r in caplog.records)
+    assert len(results) > 20  # the camera itself ran on
