@@ -144,4 +144,4 @@ def test_a_camera_refusing_the_exposure_step_has_the_control_switched_off(tmp_pa
     health = worker.health()["cameras"]["cam0"]
     assert health["auto_exposure"]["on"] is False and health["exposure_us"] == 8000.0
     assert any("automatic exposure off" in r.getMessage() and "8000" in r.getMessage() for r in caplog.records)
-    assert len(results) > 20  # the camera itself ran on
+    assert len(results) >= 10  # the camera itself ran on (20 Hz, 2 s)
