@@ -34,3 +34,37 @@ def test_the_client_mixes_are_numbers_with_p_for_pose_only_others():
     assert bench_service.parse_clients("1, 50,50p") == ((1, False), (50, False), (50, True))
     with pytest.raises(ValueError):
         bench_service.parse_clients("many")
+
+
+def test_the_lean_load_clients_read_every_message_and_answer_pings_over_a_real_websocket():
+    import asyncio
+    import threading
+
+    from websockets.asyncio.server import serve
+
+    from service.bench.ws_load import read_streams
+
+    sizes = [0, 5, 125, 126, 300, 65_535, 65_536, 200_000] * 3  # 7-, 16- and 64-bit lengths
+    pongs: list[float] = []
+    ready, port = threading.Event(), []
+
+    async def handler(ws):
+        for n in sizes[:10]:
+            await ws.send(b"x" * n)
+        pongs.append(await asyncio.wait_for(await ws.ping(b"are-you-there"), 5.0))  # the pong came back
+        for n in sizes[10:]:
+            await ws.send("é" * (n // 2))  # text frames too
+        await asyncio.sleep(0.5)
+
+    async def main():
+        async with serve(handler, "127.0.0.1", 0, max_size=None, ping_interval=None) as server:
+            port.append(server.sockets[0].getsockname()[1])
+            ready.set()
+            await asyncio.sleep(4.0)
+
+    t = threading.Thread(target=lambda: asyncio.run(main()), daemon=True)
+    t.start()
+    assert ready.wait(5.0)
+    assert read_streams(f"127.0.0.1:{port[0]}", "/ws", 3, 1.5) == 3 * len(sizes)
+    assert len(pongs) == 3
+    t.join(5.0)

@@ -7,9 +7,10 @@ rendered once, ahead, in another process, so the renderer does not compete with
 the measurement) and the simulated robot. After a warm-up the clients read
 ``/ws/poses`` for ``seconds``: one of them (the probe) in this process, stamping
 every message on arrival; the others in a process of their own, so that their
-reading does not delay the probe's stamps. They take the messages as bytes (no
-text decoding: a load client needs none), so that on a machine with few cores
-they take as little as they can from the service they measure. Reported per row:
+reading does not delay the probe's stamps. They are lean RFC 6455 clients
+(:mod:`service.bench.ws_load`: the handshake, every byte read, pings answered,
+payloads skipped by length), so that on a machine with few cores they take as
+little as they can from the service they measure. Reported per row:
 
 - *results/s*: messages the probe received per second;
 - *lost*: frames exposed in the window whose result never reached the probe
@@ -35,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from service.bench.child import health, serve_child, wait_ready
+from service.bench.ws_load import read_streams
 
 RATES_HZ = (100, 250, 500, 1000)
 CLIENTS = ((1, False), (50, False), (50, True))  # (clients, the others than the probe take pose-only messages)
@@ -108,23 +110,6 @@ async def _probe(address: str, seconds: float) -> list[tuple[int, int, int]]:
     return probe
 
 
-async def _load(address: str, n_clients: int, seconds: float, pose_only: bool = False) -> None:
-    from websockets.asyncio.client import connect
-
-    stop_at = time.monotonic() + seconds
-    query = "camera=cam0&targets=false" if pose_only else "camera=cam0"
-
-    async def client() -> None:
-        async with connect(f"ws://{address}/ws/poses?{query}", max_size=None) as ws:
-            while (left := stop_at - time.monotonic()) > 0:
-                try:
-                    await asyncio.wait_for(ws.recv(decode=False), left)
-                except TimeoutError:
-                    break
-
-    await asyncio.gather(*(client() for _ in range(n_clients)))
-
-
 LOAD_NICE = 10  # the load clients' niceness: on a machine of few cores they yield to the service and the probe
 
 
@@ -133,7 +118,8 @@ def _load_process(address: str, n_clients: int, seconds: float, pose_only: bool)
     # and reading 49 streams they would take one from it; at a lower priority they read what the
     # cores leave (a client that falls behind loses messages for itself: the service never waits)
     os.nice(LOAD_NICE)
-    asyncio.run(_load(address, n_clients, seconds, pose_only))
+    query = "camera=cam0&targets=false" if pose_only else "camera=cam0"
+    read_streams(address, f"/ws/poses?{query}", n_clients, seconds)
 
 
 def _clients(address: str, n_clients: int, seconds: float, pose_only: bool = False) -> list[tuple[int, int, int]]:
