@@ -34,3 +34,31 @@ def test_deviation_is_measured_minus_reported():
     assert abs(d.angle_deg - 0.02) < 1e-9
     out = d.to_dict()
     assert out["position_mm"] == round(d.position_mm, 4) and len(out["vector_mm"]) == 3
+
+
+def test_the_compiled_flange_part_equals_the_formulas_and_says_what_is_missing():
+    from service.core.results import Reason
+    from service.pipeline.flange import flange_part
+
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        he = SimpleNamespace(T_flange_camera=_pose(rng, 100.0), T_base_field=_pose(rng))
+        T_field_camera, T_rep = _pose(rng), _pose(rng)
+        f = flange_part(he, T_field_camera, T_rep)
+        np.testing.assert_allclose(f.T_base_flange_measured, flange_from_camera(he, T_field_camera), atol=1e-9)
+        ref = deviation(flange_from_camera(he, T_field_camera), T_rep)
+        assert abs(f.deviation.position_mm - ref.position_mm) < 1e-9
+        assert abs(f.deviation.angle_deg - ref.angle_deg) < 1e-9
+        np.testing.assert_allclose(f.deviation.vector_mm, ref.vector_mm, atol=1e-9)
+        assert f.reason is None
+    # a pose a hair apart: the angle is exact for tiny rotations (no arccos of a trace)
+    tiny = make_T(Rotation.from_rotvec([1e-9, 0.0, 0.0]).as_matrix(), [0.0, 0.0, 0.0])
+    T_rep = flange_from_camera(he, T_field_camera)
+    f = flange_part(he, T_field_camera, tiny @ T_rep)
+    assert abs(np.radians(f.deviation.angle_deg) - 1e-9) < 1e-12
+    # no reported pose: the measured flange alone, with the robot's reason
+    f = flange_part(he, T_field_camera, None, "the robot is disconnected")
+    assert f.deviation is None and f.reason is Reason.robot_disconnected and f.T_base_flange_measured is not None
+    # no hand-eye: nothing measured, said why
+    f = flange_part(None, T_field_camera, T_rep)
+    assert f.T_base_flange_measured is None and f.reason is Reason.not_calibrated

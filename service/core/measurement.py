@@ -39,7 +39,8 @@ def _r(x: Any, nd: int) -> float:
 
 def _round_T(T: Array) -> list[list[float]]:
     # one numpy call, not 16 builtin rounds: three or four poses per message (the hot path's encoding)
-    return np.round(np.asarray(T, dtype=np.float64), 9).tolist()  # type: ignore[no-any-return]
+    rounded: list[list[float]] = np.round(np.asarray(T, dtype=np.float64), 9).tolist()
+    return rounded
 
 
 def iso_wall(t_unix_ns: int) -> str:

@@ -13,6 +13,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from service.core._kernels.geometry_kernels import flange_kernel
 from service.core.geometry.frames import inv_T, pose_difference
 from service.core.measurement import Deviation, Flange
 from service.core.results import Reason
@@ -55,6 +56,22 @@ def flange_part(
         reason, message = Reason.not_calibrated, NO_HANDEYE
     if handeye is None:
         return Flange(T_base_flange_reported, None, None, reason or Reason.not_calibrated, message or NO_HANDEYE)
-    T_measured = flange_from_camera(handeye, T_field_camera)
-    dev = None if T_base_flange_reported is None else deviation(T_measured, T_base_flange_reported)
+    # compiled, once a frame: the measured flange and its deviation in one call
+    reported = T_base_flange_reported is not None
+    T_measured, dpos_mm, dang_rad, vector_mm = flange_kernel(
+        _c(handeye.T_base_field),
+        _c(T_field_camera),
+        _c(handeye.T_flange_camera),
+        _c(T_base_flange_reported) if reported else _EYE,
+        reported,
+    )
+    dev = Deviation(float(dpos_mm), float(np.degrees(dang_rad)), vector_mm) if reported else None
     return Flange(T_base_flange_reported, T_measured, dev, reason, message)
+
+
+_EYE = np.eye(4)
+
+
+def _c(T: Array | None) -> Array:
+    """A (4, 4) float64 C-contiguous array: the one type the kernel is compiled for at set-up."""
+    return np.ascontiguousarray(T, dtype=np.float64)

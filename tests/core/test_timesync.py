@@ -72,6 +72,14 @@ def test_pose_at_interpolates_between_samples_and_refuses_gaps():
     # a query just past the newest report is extrapolated (the next sample is still in flight)
     T_ahead = pose_at(t[-1] + 0.001, t, Ts, max_gap=0.01)
     assert pose_difference(T_ahead, _circle(t[-1] + 0.001)[0])[0] < 1e-2
+    # exactly on the first and the newest sample: those samples; no samples: nothing
+    np.testing.assert_allclose(pose_at(t[0], t, Ts, max_gap=0.01), Ts[0], atol=1e-9)
+    np.testing.assert_allclose(pose_at(t[-1], t, Ts, max_gap=0.01), Ts[-1], atol=1e-9)
+    assert pose_at(0.5, [], np.zeros((0, 4, 4)), max_gap=0.01) is None
+    # host nanoseconds (the pairing's times): the same pose as in seconds
+    t_ns = 1_700_000_000e9 + t * 1e9
+    T_ns = pose_at(1_700_000_000e9 + 0.5011e9, t_ns, Ts, max_gap=0.01e9)
+    assert pose_difference(T_ns, T_mid)[0] < 1e-3
 
 
 def test_time_offset_is_recovered_from_motion_with_a_constant_model_error(rng):

@@ -392,6 +392,54 @@ def predict_kernel(T0, T1, s):
     return T
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def pose_at_kernel(t, ts, Ts, max_gap):
+    """(covered, T (4, 4)): the pose at ``t`` between the samples ``Ts`` (n, 4, 4) at increasing
+    ``ts`` (n,), as :func:`service.core.pose.timesync.pose_at` (which documents the rules); T is
+    the identity when not covered."""
+    n = ts.shape[0]
+    if n == 0:
+        return False, np.eye(4)
+    k = np.searchsorted(ts, t, side="right")
+    if k == 0:
+        if ts[0] - t <= 1e-9 * max(1.0, abs(t)):
+            return True, Ts[0].copy()
+        return False, np.eye(4)
+    if k == n:
+        if n >= 2 and t - ts[n - 1] <= max_gap and ts[n - 1] - ts[n - 2] <= max_gap:
+            s = (t - ts[n - 2]) / (ts[n - 1] - ts[n - 2])  # s > 1: a short extrapolation
+            return True, predict_kernel(Ts[n - 2], Ts[n - 1], s - 1.0)
+        if t == ts[n - 1]:
+            return True, Ts[n - 1].copy()
+        return False, np.eye(4)
+    t0, t1 = ts[k - 1], ts[k]
+    if t1 - t0 > max_gap:
+        return False, np.eye(4)
+    return True, predict_kernel(Ts[k - 1], Ts[k], (t - t0) / (t1 - t0) - 1.0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def flange_kernel(Z, T_field_camera, X, T_reported, with_reported):
+    """The measured flange ``Z @ T_field_camera @ X^-1`` (4, 4) and, ``with_reported``, its
+    deviation from ``T_reported``: distance mm, angle rad, position difference (3,) mm
+    (:mod:`service.pipeline.flange`, in one call instead of a dozen numpy ones a frame)."""
+    X_inv = np.eye(4)
+    for i in range(3):
+        for j in range(3):
+            X_inv[i, j] = X[j, i]
+    for i in range(3):
+        X_inv[i, 3] = -(X[0, i] * X[0, 3] + X[1, i] * X[1, 3] + X[2, i] * X[2, 3])
+    T_m = Z @ T_field_camera @ X_inv
+    d = np.zeros(3)
+    if not with_reported:
+        return T_m, 0.0, 0.0, d
+    for i in range(3):
+        d[i] = T_m[i, 3] - T_reported[i, 3]
+    R_m, R_r = np.ascontiguousarray(T_m[:3, :3]), np.ascontiguousarray(T_reported[:3, :3])
+    w = rotvec_from_matrix_kernel(R_m.T @ R_r)  # exact for tiny angles (no arccos of a trace)
+    return T_m, np.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2), np.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2), d
+
+
 #: :func:`adjust_kernel`'s outcomes
 CONVERGED, MAX_ITER, BEHIND, SINGULAR, NO_STEP = 0, 1, 2, 3, 4
 
@@ -547,6 +595,8 @@ def warm_up() -> None:
     rotation_from_rotvec_kernel(np.zeros(3))
     rotvec_from_matrix_kernel(np.eye(3))  # also called alone (so3.rotvec_from_R of one matrix)
     predict_kernel(np.eye(4), np.eye(4), 1.0)
+    pose_at_kernel(0.5, np.array([0.0, 1.0]), np.stack([np.eye(4), np.eye(4)]), 2.0)
+    flange_kernel(np.eye(4), np.eye(4), np.eye(4), np.eye(4), True)
     whitened_ideal_kernel(xy, 1.0, 1.0, 0.0067, 0.0067, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     is_rigid_kernel(np.eye(4), 1e-6)
     scatter_kernel(p, xy)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service.core.geometry.frames import interpolate_T
+from service.core._kernels.geometry_kernels import pose_at_kernel
 
 Array = NDArray[np.float64]
 
@@ -224,23 +224,12 @@ def pose_at(t: float, t_samples: ArrayLike, T_samples: ArrayLike, max_gap: float
     paired rather than pairing it with a stale pose. Linear in position, slerp
     in rotation (``frames.interpolate_T``).
     """
-    ts = np.asarray(t_samples, dtype=np.float64)
-    Ts = np.asarray(T_samples, dtype=np.float64)
-    n = ts.size
-    if n == 0:
-        return None
-    k = int(np.searchsorted(ts, t, side="right"))
-    if k == 0:
-        return Ts[0].copy() if ts[0] - t <= 1e-9 * max(1.0, abs(t)) else None
-    if k == n:
-        if n >= 2 and t - ts[-1] <= max_gap and ts[-1] - ts[-2] <= max_gap:
-            s = (t - ts[-2]) / (ts[-1] - ts[-2])
-            return interpolate_T(Ts[-2], Ts[-1], float(s))  # s > 1: short extrapolation
-        return Ts[-1].copy() if t == ts[-1] else None
-    t0, t1 = ts[k - 1], ts[k]
-    if t1 - t0 > max_gap:
-        return None
-    return interpolate_T(Ts[k - 1], Ts[k], float((t - t0) / (t1 - t0)))
+    ts = np.ascontiguousarray(t_samples, dtype=np.float64).reshape(-1)
+    Ts = np.ascontiguousarray(T_samples, dtype=np.float64).reshape(-1, 4, 4)
+    # compiled: the pairing's per-frame call (a dozen numpy calls, each a wait for the interpreter
+    # lock on the service's busy processing thread)
+    covered, T = pose_at_kernel(float(t), ts, Ts, float(max_gap))
+    return T if covered else None
 
 
 @dataclass(frozen=True)
