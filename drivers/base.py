@@ -113,7 +113,9 @@ class CameraInfo:
 class Frame:
     """One image and when it was taken.
 
-    image : (H, W) uint8 or uint16, owned by the frame (never a view into a driver buffer)
+    image : (H, W) uint8 or uint16, C-contiguous, owned by the frame: never a view into a buffer
+        the driver reuses (a replay lends read-only views of its recording, which nothing rewrites);
+        consumers only read it
     seq : the device's frame counter (may wrap; compare for gaps, not order)
     t_host_ns : host monotonic clock when the frame reached this process
     t_device_ns : the device's timestamp of the exposure start in device ticks as ns, or None
