@@ -21,8 +21,10 @@ from scipy.spatial.transform import Rotation
 from service.core._kernels.geometry_kernels import (
     correction_kernel,
     eccentricity_kernel,
+    flange_kernel,
     is_rigid_kernel,
     match_kernel,
+    pose_at_kernel,
     predict_kernel,
     project_kernel,
     rotation_from_rotvec_kernel,
@@ -456,3 +458,88 @@ def test_matching_edge_cases(rng):
     both = np.array([[50.0, 50.0], [50.4, 50.0]])  # two predictions for one blob: neither gets it
     np.testing.assert_array_equal(match_kernel(both, two[:1], np.ones(1, bool), 1.0), [-1, -1])
     np.testing.assert_array_equal(match_kernel(both[:1], two[:1], np.ones(1, bool), 1.0), [0])
+
+
+def _T(rng: np.random.Generator, scale_mm: float = 500.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+    T[:3, 3] = rng.uniform(-scale_mm, scale_mm, 3)
+    return T
+
+
+def _pose_at_reference(t, ts, Ts, max_gap):
+    """The pairing's rules (``timesync.pose_at``) with scipy's Slerp for the rotation."""
+    from scipy.spatial.transform import Slerp
+
+    n = len(ts)
+    if n == 0:
+        return None
+    k = int(np.searchsorted(ts, t, side="right"))
+    if k == 0:
+        return Ts[0] if ts[0] - t <= 1e-9 * max(1.0, abs(t)) else None
+    if k == n:
+        if n >= 2 and t - ts[-1] <= max_gap and ts[-1] - ts[-2] <= max_gap:
+            a, b, s = Ts[-2], Ts[-1], (t - ts[-2]) / (ts[-1] - ts[-2])
+        else:
+            return Ts[-1] if t == ts[-1] else None
+    else:
+        if ts[k] - ts[k - 1] > max_gap:
+            return None
+        a, b, s = Ts[k - 1], Ts[k], (t - ts[k - 1]) / (ts[k] - ts[k - 1])
+    step = Rotation.from_matrix(a[:3, :3]).inv() * Rotation.from_matrix(b[:3, :3])
+    out = np.eye(4)
+    if s <= 1.0:
+        out[:3, :3] = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([a[:3, :3], b[:3, :3]])))(s).as_matrix()
+    else:  # extrapolated along the same geodesic
+        out[:3, :3] = (Rotation.from_matrix(a[:3, :3]) * Rotation.from_rotvec(s * step.as_rotvec())).as_matrix()
+    out[:3, 3] = (1.0 - s) * a[:3, 3] + s * b[:3, 3]
+    return out
+
+
+def test_pose_at_kernel_follows_the_pairing_rules_and_slerp():
+    rng = np.random.default_rng(11)
+    ts = np.cumsum(rng.uniform(1.0, 3.0, 40))
+    ts[20:] += 30.0  # a gap wider than max_gap
+    # a slow motion: samples a few degrees apart, as a robot reports
+    Ts = np.stack([_T(rng, 1.0) for _ in range(40)])
+    base = _T(rng)
+    for k in range(40):
+        Ts[k] = (
+            base @ Ts[k]
+            if k == 0
+            else Ts[k - 1]
+            @ np.block(
+                [
+                    [Rotation.from_rotvec(rng.normal(0, 0.03, 3)).as_matrix(), rng.normal(0, 2, (3, 1))],
+                    [np.zeros((1, 3)), 1],
+                ]
+            )
+        )
+    queries = np.concatenate([rng.uniform(ts[0] - 5, ts[-1] + 5, 300), ts, [ts[-1] + 1.0, ts[-1] + 10.0]])
+    for t in queries:
+        covered, T = pose_at_kernel(float(t), ts, Ts, 5.0)
+        ref = _pose_at_reference(t, ts, Ts, 5.0)
+        assert covered == (ref is not None), t
+        if ref is not None:
+            np.testing.assert_allclose(T, ref, rtol=0, atol=1e-9)
+        else:
+            np.testing.assert_array_equal(T, np.eye(4))
+    assert pose_at_kernel(1.0, np.zeros(0), np.zeros((0, 4, 4)), 5.0)[0] is False
+
+
+def test_flange_kernel_is_z_times_the_camera_times_x_inverse_and_its_deviation():
+    rng = np.random.default_rng(12)
+    for _ in range(50):
+        Z, T_fc, X, T_rep = _T(rng), _T(rng), _T(rng, 100.0), _T(rng)
+        T_m, dpos, dang, d = flange_kernel(Z, T_fc, X, T_rep, True)
+        np.testing.assert_allclose(T_m, Z @ T_fc @ np.linalg.inv(X), rtol=0, atol=1e-9)
+        np.testing.assert_allclose(d, T_m[:3, 3] - T_rep[:3, 3], rtol=0, atol=1e-12)
+        assert dpos == pytest.approx(np.linalg.norm(d), abs=1e-12)
+        ref = (Rotation.from_matrix(T_m[:3, :3]).inv() * Rotation.from_matrix(T_rep[:3, :3])).magnitude()
+        assert dang == pytest.approx(ref, abs=1e-12)
+        _, dpos0, dang0, d0 = flange_kernel(Z, T_fc, X, T_rep, False)  # no reported pose: no deviation
+        assert dpos0 == dang0 == 0.0 and not d0.any()
+    tiny = np.eye(4)
+    tiny[:3, :3] = Rotation.from_rotvec([0.0, 1e-10, 0.0]).as_matrix()
+    T_m = flange_kernel(Z, T_fc, X, T_rep, False)[0]
+    assert flange_kernel(Z, T_fc, X, tiny @ T_m, True)[2] == pytest.approx(1e-10, rel=1e-4)
