@@ -145,7 +145,15 @@ class CameraDriver(Protocol):
         """Connect and allocate buffers; raises ``DriverInitError``/``DriverUnavailable``."""
 
     def configure(self, settings: CameraSettings) -> None:
-        """Apply settings (stops and restarts acquisition as needed); raises ``FeatureUnsupported``."""
+        """Apply settings (stops and restarts acquisition as needed); raises ``FeatureUnsupported``.
+
+        An exposure step, settings that differ from those in force only in ``exposure_us`` and/or
+        ``gain_db`` (the exposure control's, a few times a second), is applied without restarting
+        the acquisition wherever the device allows: the frame counter runs on without a gap and
+        waiting triggers stay. ``Frame.exposure_us`` is the exposure a frame was taken with, as
+        well as the driver can know it (a driver that cannot tell says which frames around a step
+        may carry the new value while taken with the old one).
+        """
 
     def fetch(self, timeout_s: float) -> Frame:
         """The next frame; raises ``DriverTimeout`` or ``DriverDisconnected``."""

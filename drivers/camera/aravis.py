@@ -18,6 +18,17 @@ next ``fetch`` raises :class:`DriverDisconnected`, and every later
 Aravis objects are released in a background thread: their finalisers wait
 for GVCP timeouts (~10 s) and must not block the caller.
 
+Settings: ``configure`` stops the acquisition, writes everything and starts it again on a new
+stream, which costs a GigE Vision camera hundreds of milliseconds of frames, except for an
+exposure step (only ``exposure_us`` and/or ``gain_db`` differ from the settings in force, as the
+exposure control makes a few times a second): that is written to the acquiring camera and the
+stream runs on, frame ids without a gap. Where the camera's GenICam description makes the feature
+read-only or locked while acquiring, or the camera refuses the write, the step takes the full path.
+``Frame.exposure_us`` is the camera's ``ExposureTime`` read back after each change (the driver
+enables no chunk data, so no per-frame ``ChunkExposureTime``): which exposure a buffer was taken
+with cannot be known, and frames not yet fetched at a step (exposed, in transit or waiting in the
+pool), and on sensors that pipeline their exposures the next one or two, carry the new value.
+
 Clocks: ``t_device_ns`` is the buffer's device timestamp; ``t_host_ns`` is when the frame's
 leader reached Aravis' stream thread, put on the monotonic clock, not when it was popped (which
 waits for the GIL); :mod:`drivers.camera.aravis_stream` says how, and how late the stamps may be.
@@ -33,6 +44,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from dataclasses import replace
 from typing import Any
 
 from drivers.base import (
@@ -50,6 +62,7 @@ from drivers.camera.aravis_genicam import (
     Aravis,
     Features,
     GLib,
+    apply_exposure_step,
     apply_settings,
     apply_strobe,
     check_settings,
@@ -138,7 +151,8 @@ class AravisCamera:
         self._lost = threading.Event()
         self._opened = False
         self._last_attempt_s = -float("inf")
-        self._settings: CameraSettings | None = None
+        self._settings: CameraSettings | None = None  # the last configured (re-applied after a reconnection)
+        self._applied: CameraSettings | None = None  # what the connected camera holds, when written whole
         self._info: CameraInfo | None = None
         self._features: Any = None  # Features of the connection's device
         self._exposure_us = float("nan")
@@ -176,7 +190,9 @@ class AravisCamera:
     def configure(self, settings: CameraSettings) -> None:
         self._ensure_connected()
         check_settings(self._features, settings)
-        self._features.call(self._camera.stop_acquisition, "stop the acquisition")
+        if self._step_exposure(settings):
+            return
+        self._stop()
         previous, self._settings = self._settings, settings  # a reconnection mid-way applies the new ones
         try:
             self._apply(settings)
@@ -308,7 +324,7 @@ class AravisCamera:
             self._connect()
             if self._settings is not None:
                 check_settings(self._features, self._settings)
-                self._features.call(self._camera.stop_acquisition, "stop the acquisition")
+                self._stop()
                 self._apply(self._settings)
                 self._make_stream()
             self._start()
@@ -344,6 +360,7 @@ class AravisCamera:
             self._device.disconnect(self._handler_id)
         objects = [self._stream, self._camera, self._device, self._features]
         self._stream = self._camera = self._device = self._features = None
+        self._applied = None
         self._handler_id = None
         if background:
             thread = threading.Thread(target=objects.clear, name="aravis-release", daemon=True)
@@ -355,15 +372,36 @@ class AravisCamera:
     def _start(self) -> None:
         self._features.call(self._camera.start_acquisition, "start the acquisition")
 
+    def _stop(self) -> None:
+        self._features.call(self._camera.stop_acquisition, "stop the acquisition")
+
     # --- frames and settings (the work is in aravis_stream and aravis_genicam) ----------------
 
     def _frame_from(self, buffer: Any) -> Frame | None:
         """An owned frame from a popped buffer, or None for a failed one; the buffer goes back at once."""
         return self._frames.frame_from(self._stream, buffer, self._exposure_us, self._name())
 
+    def _step_exposure(self, s: CameraSettings) -> bool:
+        """An exposure step written to the acquiring camera; False when ``s`` needs the full path."""
+        old = self._applied
+        if old is None or replace(s, exposure_us=old.exposure_us, gain_db=old.gain_db) != old:
+            return False
+        try:
+            if not apply_exposure_step(self._features, old, s):
+                return False
+        except DriverDisconnected:
+            raise
+        except DriverError as e:  # said no while acquiring, without saying so in its description
+            log.info("camera %s refused an exposure step while acquiring (%s); stopping to write it", self._name(), e)
+            return False
+        self._settings = self._applied = s
+        self._exposure_us = read_exposure_us(self._features)
+        return True
+
     def _apply(self, s: CameraSettings) -> None:
         """Write ``s`` to the stopped camera (checked by ``check_settings``); the caller makes a new stream."""
         f = self._features
+        self._applied = None  # a write that fails part-way leaves the camera's state unknown
         apply_settings(f, s)
         if s.strobe is not None:
             self._lit_line = apply_strobe(f, s.strobe)
@@ -373,6 +411,7 @@ class AravisCamera:
             f.set("AcquisitionMode", "Continuous")
         self._exposure_us = read_exposure_us(f)
         self._info = read_info(f, self._camera)
+        self._applied = s
 
     def _model(self) -> str:
         return self._info.model if self._info is not None and self._info.model else self._name()

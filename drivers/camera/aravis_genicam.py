@@ -7,7 +7,10 @@ driver's error tree (a lost link sets the connection's ``lost`` flag and raises
 :class:`~drivers.base.FeatureUnsupported` naming it). On top of it, the settings: where cameras
 differ (the older ``ExposureTimeAbs``/``GainRaw``/``AcquisitionFrameRateAbs``) whichever exists is
 taken; :func:`check_settings` raises for anything the camera lacks *before* :func:`apply_settings`
-and :func:`apply_strobe` change anything.
+and :func:`apply_strobe` change anything. :func:`apply_exposure_step` is the one write made to a
+camera that is acquiring: a new exposure time and gain (SFNC lets both change while acquiring,
+and practically every camera does), unless the camera's GenICam description says they are
+read-only or locked now.
 
 A module of its own because it is the GenICam side of the driver: what it writes and in which
 order (offsets before sizes, every trigger off before one goes on) matters for every camera model,
@@ -50,6 +53,7 @@ __all__ = [
     "Aravis",
     "Features",
     "GLib",
+    "apply_exposure_step",
     "apply_settings",
     "apply_strobe",
     "check_settings",
@@ -158,6 +162,17 @@ class Features:
         )
         self.call(lambda: setter(name, value), f"set {name} to {value}", name)
 
+    def writable(self, name: str) -> bool:
+        """Whether ``name`` may be written now: its access mode (of its node and the registers behind it)
+        is RW or WO and its ``pIsLocked`` (often ``TLParamsLocked`` while acquiring) is not set."""
+        node = self.device.get_feature(name)
+        if not isinstance(node, Aravis.GcFeatureNode):
+            return False
+        # the node's own call: arv_device_get_feature_access_mode returns a truth value, not the mode (0.8.26)
+        mode = node.get_actual_access_mode()
+        locked = self.call(node.is_locked, f"read whether {name} is locked", name)
+        return mode in (Aravis.GcAccessMode.RW, Aravis.GcAccessMode.WO) and not locked
+
     def set_if_entry(self, name: str, entry: str) -> None:
         if self.has(name) and entry in self.entries(name):
             self.set(name, entry)
@@ -263,12 +278,41 @@ def apply_settings(f: Features, s: CameraSettings) -> None:
     if s.gain_db is not None:
         f.set_if_entry("GainAuto", "Off")
         f.set_if_entry("GainSelector", "All")
-        if f.has("Gain"):
-            f.set("Gain", float(s.gain_db))
-        else:
-            log.warning("camera %s has GainRaw only (device units, not dB); writing %d", f.model(), round(s.gain_db))
-            f.set("GainRaw", round(s.gain_db))
+        name, value = _gain_write(f, s.gain_db)
+        if name == "GainRaw":
+            log.warning("camera %s has GainRaw only (device units, not dB); writing %d", f.model(), value)
+        f.set(name, value)
     _apply_trigger(f, s)
+
+
+def apply_exposure_step(f: Features, old: CameraSettings, new: CameraSettings) -> bool:
+    """Write the exposure time and gain of ``new`` that differ from ``old`` to the acquiring camera.
+
+    ``new`` differs from ``old`` (written whole by :func:`apply_settings`) in ``exposure_us`` and
+    ``gain_db`` only. Returns False, having written nothing, when the change needs the camera
+    stopped: a feature is read-only or locked while acquiring, or manual exposure (gain) is to be
+    taken over from the camera's own (``old`` left it alone: ``ExposureAuto`` may be on). A camera
+    that refuses the write itself raises :class:`~drivers.base.DriverError`, as any write does.
+    """
+    writes: list[tuple[str, float | int]] = []
+    if new.exposure_us is not None and new.exposure_us != old.exposure_us:
+        if old.exposure_us is None:
+            return False
+        writes.append((f.first("exposure time", "ExposureTime", "ExposureTimeAbs"), float(new.exposure_us)))
+    if new.gain_db is not None and new.gain_db != old.gain_db:
+        if old.gain_db is None:
+            return False
+        writes.append(_gain_write(f, new.gain_db))
+    if not all(f.writable(name) for name, _ in writes):
+        return False
+    for name, value in writes:
+        f.set(name, value)
+    return True
+
+
+def _gain_write(f: Features, gain_db: float) -> tuple[str, float | int]:
+    """The gain feature and the value to write: ``Gain`` in dB, else ``GainRaw`` in device units."""
+    return ("Gain", float(gain_db)) if f.has("Gain") else ("GainRaw", round(gain_db))
 
 
 def _apply_trigger(f: Features, s: CameraSettings) -> None:

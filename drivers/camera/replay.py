@@ -36,9 +36,11 @@ hardware trigger raise ``FeatureUnsupported``, as do a pixel format other than
 the recording's and, for ``"sim"``, another exposure than the one rendered
 (the frames would have to be rendered again: reopen the camera). A folder's
 frames are stamped with the configured ``exposure_us`` (the recording's, as the
-operator states it; an exposure step, as the exposure control makes, labels the frames delivered
-after it and keeps the frame clock and the triggers waiting). ROI crops. The strobe is accepted and has no effect: the
-ring light of a recording was what it was; ``info.features`` has no ``strobe``.
+operator states it); an exposure step (a ``configure`` changing only the
+exposure, as the exposure control makes) labels the frames delivered after it
+and keeps the frame clock and the triggers waiting. ROI crops. The strobe is
+accepted and has no effect: the ring light of a recording was what it was;
+``info.features`` has no ``strobe``.
 
 Not modelled: exposure, readout and transfer latency, jitter, packet loss, a device
 clock's offset and drift, any link to a robot (a replay is not the robot's pose now).

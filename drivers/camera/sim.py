@@ -10,6 +10,13 @@ It behaves like a GigE Vision camera in the ways the worker depends on:
   ends, so time alignment has real work to do;
 - exposure, gain, bit depth and ROI change the rendered image; the ring light is
   lit only while the strobe output is configured to fire during the exposure;
+- an exposure step (a ``configure`` that changes only ``exposure_us`` and/or ``gain_db``, as the
+  exposure control makes while the camera runs) keeps the frame grid, the frames asked for and
+  the triggers waiting: a frame whose exposure had started before the step keeps the old
+  exposure, as on a real camera, and every later one is asked of the renderer again with the new
+  one (it may come late by that render; ``seq`` has no gap). Any other change starts afresh:
+  the frames asked for and the triggers waiting are dropped, and the grid's next frame that can
+  be rendered in time comes next (usually a gap in ``seq``, as a camera's restart loses frames);
 - ``unplug()`` / ``plug()`` inject a lost link (``DriverDisconnected``); ``stall()`` keeps the
   link but delivers no frame (a stuck stream: only timeouts); ``garble()`` delivers frames of
   noise (a broken sensor or a wrong pixel format); ``plug()`` ends every fault.
@@ -20,9 +27,10 @@ camera asks for the next ``AHEAD_FRAMES`` frames at once and copies each image o
 A frame's pose is the cell's at mid-exposure (program and commanded moves), computed when it is
 asked for and checked again before and after it is taken: a move commanded after a frame was
 asked for (the hand-eye session moving the arm) has it rendered again, so it may come late
-(stamped with its scheduled arrival all the same). A frame's noise comes from ``(seed, its
-exposure start)``: the same image whichever process renders it. Until the child is ready (1-2 s
-after ``open()``), if it cannot start, or with ``render="inline"``, frames render in this process.
+(stamped with its scheduled arrival all the same). ``Frame.exposure_us`` is the exposure a frame
+was rendered with, and its brightness follows it. A frame's noise comes from ``(seed, its exposure
+start)``: the same image whichever process renders it. Until the child is ready (1-2 s after
+``open()``), if it cannot start, or with ``render="inline"``, frames render in this process.
 
 What it does not model: motion blur within the exposure, rolling shutter, packet loss, buffer
 underruns, and how long rendering takes (a frame is handed over no earlier than its scheduled
@@ -38,6 +46,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -73,6 +82,8 @@ class _Planned:
     T_field_camera: np.ndarray
     version: int  # of the settings it was asked for with
     ticket: int
+    exposure_us: float  # what it is rendered with: an exposure step re-asks only the frames exposed after it
+    gain_db: float | None
 
 
 class SimCamera:
@@ -92,7 +103,7 @@ class SimCamera:
     def __init__(
         self,
         cell: SimCell | None = None,
-        cell_config: dict[str, object] | None = None,
+        cell_config: dict[str, Any] | None = None,
         epoch_ns: int | None = None,
         latency_s: float = 0.004,
         jitter_s: float = 0.0005,
@@ -180,9 +191,17 @@ class SimCamera:
         if strobe is not None and strobe.enabled and strobe.source not in (*_LIT_SOURCES, "Off", "UserOutput0"):
             raise FeatureUnsupported("LineSource", f"the simulated camera has no line source {strobe.source}")
         with self._lock:
+            old, now_ns = self._settings, time.monotonic_ns()
+            step = replace(settings, exposure_us=old.exposure_us, gain_db=old.gain_db) == old
+            if step:  # a triggered exposure that has begun is taken with the old settings, as planned frames are
+                while self._triggers and self._triggers[0] <= now_ns:
+                    self._plan.append(self._ask(self._triggers.pop(0)))
+            else:
+                self._triggers.clear()
+                self._version += 1
             self._settings = settings
-            self._triggers.clear()
-            self._version += 1
+        if step:
+            self._expose_again(now_ns)
 
     def fetch(self, timeout_s: float) -> Frame:
         self._require_link()
@@ -211,7 +230,7 @@ class SimCamera:
         self._require_link()  # unplugged while "in flight": the frame is lost with the link
         seq = self._seq_of(p.t_start_ns)
         self._last_exposure_start_ns = p.t_start_ns
-        exposure_ns = int(self._exposure_us() * 1e3)
+        exposure_ns = int(p.exposure_us * 1e3)
         return Frame(
             image=image,
             seq=seq,
@@ -219,7 +238,7 @@ class SimCamera:
             # frame cannot be rendered before its trigger, so its render time is not latency
             t_host_ns=p.t_arrival_ns,
             t_device_ns=int((p.t_start_ns - self.clock_offset_ns) * self.clock_rate),
-            exposure_us=self._exposure_us(),
+            exposure_us=p.exposure_us,
             meta={
                 "T_field_camera": p.T_field_camera.tolist(),
                 "t_exposure_true_host_ns": p.t_start_ns + exposure_ns // 2,
@@ -306,15 +325,33 @@ class SimCamera:
 
     def _revise_plan(self) -> None:
         """Drop the frames asked for with older settings; ask again for those whose pose has changed since."""
-        if self._plan and self._plan[-1].version != self._version:
+        if any(p.version != self._version for p in self._plan):  # any: an exposure step may append behind stale ones
             for p in self._plan:
-                self._renderer.cancel(p.ticket)
-            self._plan.clear()
+                if p.version != self._version:
+                    self._renderer.cancel(p.ticket)
+            self._plan = collections.deque(p for p in self._plan if p.version == self._version)
         for i in range(len(self._plan)):
             p = self._plan[i]
             if not np.array_equal(self._T_field_camera(p.t_cell_s), p.T_field_camera):  # a move was commanded
                 self._renderer.cancel(p.ticket)
-                self._plan[i] = self._ask(p.t_start_ns, p.t_arrival_ns)
+                self._plan[i] = self._ask(p.t_start_ns, p.t_arrival_ns, like=p)
+
+    def _expose_again(self, now_ns: int) -> None:
+        """An exposure step at ``now_ns``: the frames asked for whose exposure starts later are asked again with it.
+
+        Their exposure start (so ``seq``) stays; the arrival moves by the change of the exposure.
+        Those exposed before keep the old exposure, as a real camera's frames already taken do."""
+        exposure_us, gain_db = self._exposure_us(), self._settings.gain_db
+        for i, p in enumerate(self._plan):
+            if (
+                p.version != self._version
+                or p.t_start_ns <= now_ns
+                or (p.exposure_us, p.gain_db) == (exposure_us, gain_db)
+            ):
+                continue
+            self._renderer.cancel(p.ticket)
+            shift_ns = int(exposure_us * 1e3) - int(p.exposure_us * 1e3)
+            self._plan[i] = self._ask(p.t_start_ns, p.t_arrival_ns + shift_ns)
 
     def _fill_plan(self, now_ns: int) -> None:
         """Free run: ask for the next frames on the grid that can be rendered before they are due."""
@@ -340,17 +377,22 @@ class SimCamera:
             self._plan.append(self._ask(self.epoch_ns + k * period))
             backlog += 1
 
-    def _ask(self, t_start_ns: int, t_arrival_ns: int | None = None) -> _Planned:
-        """Ask the renderer for the frame exposed from ``t_start_ns``: the cell's pose at mid-exposure, now."""
-        exposure_ns = int(self._exposure_us() * 1e3)
+    def _ask(self, t_start_ns: int, t_arrival_ns: int | None = None, like: _Planned | None = None) -> _Planned:
+        """Ask the renderer for the frame exposed from ``t_start_ns``: the cell's pose at mid-exposure, now.
+
+        With the current exposure and gain, or with those of ``like`` (the same frame asked again)."""
+        exposure_us, gain_db = (
+            (like.exposure_us, like.gain_db) if like else (self._exposure_us(), self._settings.gain_db)
+        )
+        exposure_ns = int(exposure_us * 1e3)
         if t_arrival_ns is None:
             t_arrival_ns = t_start_ns + exposure_ns + self.latency_ns + int(self._rng.exponential(self.jitter_ns))
         t_cell_s = (t_start_ns + exposure_ns // 2 - self.epoch_ns) * 1e-9
         T = self._T_field_camera(t_cell_s)
-        settings = replace(self._render_settings(), lit=self._lit())
+        settings = replace(self._render_settings(exposure_us, gain_db), lit=self._lit())
         job = RenderJob(T, settings, (self._seed, (t_start_ns - self.epoch_ns) % 2**63))
         ticket = self._renderer.submit(job)
-        return _Planned(t_start_ns, t_arrival_ns, t_cell_s, T, self._version, ticket)
+        return _Planned(t_start_ns, t_arrival_ns, t_cell_s, T, self._version, ticket, exposure_us, gain_db)
 
     def _take(self, deadline_ns: int) -> tuple[np.ndarray | None, bool]:
         """The next frame's image (ROI), None if not rendered by the deadline, and whether the child rendered it.
@@ -362,7 +404,7 @@ class SimCamera:
             image = self._renderer.take(p.ticket, deadline_ns, self._settings.roi)
             if image is None or attempt == 2 or np.array_equal(self._T_field_camera(p.t_cell_s), p.T_field_camera):
                 break
-            self._plan[0] = self._ask(p.t_start_ns, p.t_arrival_ns)
+            self._plan[0] = self._ask(p.t_start_ns, p.t_arrival_ns, like=p)
         return image, by_child
 
     # --- internals ----------------------------------------------------------------------------
@@ -389,9 +431,7 @@ class SimCamera:
         s = self._settings.strobe
         return s is not None and s.enabled and s.source in _LIT_SOURCES and not s.inverted
 
-    def _render_settings(self) -> RenderSettings:
-        gain = 10 ** ((self._settings.gain_db or 0.0) / 20.0)
+    def _render_settings(self, exposure_us: float, gain_db: float | None) -> RenderSettings:
+        gain = 10 ** ((gain_db or 0.0) / 20.0)
         depth = _BIT_DEPTH[self._settings.pixel_format or "Mono8"]
-        return replace(
-            RenderSettings(), exposure_scale=self._exposure_us() / REFERENCE_EXPOSURE_US * gain, bit_depth=depth
-        )
+        return replace(RenderSettings(), exposure_scale=exposure_us / REFERENCE_EXPOSURE_US * gain, bit_depth=depth)

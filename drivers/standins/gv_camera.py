@@ -12,9 +12,13 @@ What it adds to Aravis' fake camera:
   (``LineSelector/LineMode/LineSource/LineInverter``), ``Gain`` in dB,
   ``ExposureTime``, a timer and Mono12, which the fake camera stores and reads
   back; ``xml_path=None`` keeps Aravis' built-in description (no lines);
-* image content from ``frame_source(t_host_ns, lit)``: libaravis' fill-pattern
-  hook is set through ctypes, because the PyGObject binding of
+* image content from ``frame_source(t_host_ns, lit, exposure_us)``: libaravis'
+  fill-pattern hook is set through ctypes, because the PyGObject binding of
   ``arv_fake_camera_set_fill_pattern`` crashes the process (Aravis 0.8.26);
+* exposure: ``ExposureTime`` may be written while the camera acquires (as SFNC allows and
+  cameras do); the fake reads it as it fills each frame, so the change holds from the next
+  frame exposed, and ``frame_source`` is told it: :func:`cell_frame_source` renders the cell's
+  targets brighter or dimmer with it, as the simulated camera does (gain is not in the image);
 * exposure timing: a frame's exposure starts when the fake camera fills it (or, rendering
   ahead, at the instant its image was rendered for), its device timestamp is that start on the
   host's real-time clock (ns), the image shows the scene at mid-exposure, and the frame leaves
@@ -36,10 +40,10 @@ What it adds to Aravis' fake camera:
 
 What it does not model: packet loss unless asked (``lost_packet_ratio``),
 network latency, clock drift (device timestamps are the host's real-time
-clock), motion blur, exposure time or gain in the image (``frame_source``
-decides), partial strobe overlap (the light is on or off for a whole frame),
-hardware triggers (with ``TriggerSource = Line0`` no frame comes), packed pixel
-formats. Frame ids start near 65400 and wrap at 65535 (Aravis' choice).
+clock), motion blur, gain in the image, partial strobe overlap (the light is
+on or off for a whole frame), hardware triggers (with ``TriggerSource = Line0``
+no frame comes), packed pixel formats. Frame ids start near 65400 and wrap at
+65535 (Aravis' choice).
 
 Addresses: Aravis' fake camera listens only on an address assigned to a
 network interface; on a stock Linux host that is 127.0.0.1 alone (binding
@@ -83,9 +87,9 @@ __all__ = ["DEFAULT_XML", "FrameSource", "GvStandIn", "cell_frame_source", "cont
 
 DEFAULT_XML = Path(__file__).with_name("gv_camera.xml")
 
-FrameSource = Callable[[int, bool], np.ndarray]
-"""``frame_source(t_host_ns, lit) -> (H, W) uint8`` (or uint16): the whole sensor at that instant
-(``time.monotonic_ns()``; the stand-in asks for mid-exposure)."""
+FrameSource = Callable[[int, bool, float], np.ndarray]
+"""``frame_source(t_host_ns, lit, exposure_us) -> (H, W) uint8`` (or uint16): the whole sensor at
+that instant (``time.monotonic_ns()``; the stand-in asks for mid-exposure), exposed that long."""
 
 _GVCP_PORT = 3956
 
@@ -102,6 +106,7 @@ _SOURCE_EXPOSURE_ACTIVE, _SOURCE_TIMER0_ACTIVE = 1, 2
 _TIMER_TRIGGER_EXPOSURE_START = 1
 _STALE_AHEAD_NS = 500_000_000  # a frame rendered ahead for an exposure longer ago than this is dropped
 _RESULT_TIMEOUT_S = 5.0  # the longest a fill waits for the frame being rendered ahead for it
+_STILL_RENDERS_KEPT = 8  # cell_frame_source: renders of a still cell kept (by ring light and exposure)
 
 _FillPattern = ctypes.CFUNCTYPE(
     None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint32
@@ -149,10 +154,11 @@ class GvStandIn:
 
     Parameters
     ----------
-    frame_source : ``(t_host_ns, lit) -> (height, width) uint8`` (uint16 is taken as is for the
-        16-bit formats, uint8 is shifted up to them): the scene at mid-exposure, ``t_host_ns`` on
-        ``time.monotonic_ns()``. Called once per frame in the fake camera's thread, or with
-        ``render_ahead`` mostly in the stand-in's render thread (so it must be thread-safe).
+    frame_source : ``(t_host_ns, lit, exposure_us) -> (height, width) uint8`` (uint16 is taken as
+        is for the 16-bit formats, uint8 is shifted up to them): the scene at mid-exposure,
+        ``t_host_ns`` on ``time.monotonic_ns()``, exposed for the camera's ``ExposureTime`` in us.
+        Called once per frame in the fake camera's thread, or with ``render_ahead`` mostly in the
+        stand-in's render thread (so it must be thread-safe).
     address : IPv4 address to listen on (one stand-in per address; see the module note).
     serial : serial number the camera reports (at most 15 characters).
     width, height : sensor size in px; also the initial ROI.
@@ -347,7 +353,7 @@ class GvStandIn:
                 self._prepare_ahead(t_start_ns, lit, exposure_ns)  # renders while this frame waits
             else:
                 t_start_ns, ahead = t_call_ns, False
-                sensor = self.frame_source(t_start_ns + exposure_ns // 2, lit)
+                sensor = self.frame_source(t_start_ns + exposure_ns // 2, lit, exposure_ns * 1e-3)
             window = self._window(
                 np.asarray(sensor),
                 self._register(_REG_OFFSET_X),
@@ -375,7 +381,7 @@ class GvStandIn:
 
     def _render(self, t_start_ns: int, lit: bool, exposure_ns: int) -> np.ndarray:
         t0 = time.perf_counter()
-        image = self.frame_source(t_start_ns + exposure_ns // 2, lit)
+        image = self.frame_source(t_start_ns + exposure_ns // 2, lit, exposure_ns * 1e-3)
         self._render_s.append(time.perf_counter() - t0)
         return image
 
@@ -510,20 +516,33 @@ class GvStandIn:
 def cell_frame_source(cell: Any, t0_ns: int | None = None) -> FrameSource:
     """A ``frame_source`` showing a :class:`service.sim.cell.SimCell` at ``(t_host_ns - t0_ns)`` s.
 
-    Noise-free renders; a cell whose program holds still is rendered once per ring-light state.
-    Safe to call from several threads (the cell is read only). A moving cell takes tens of
-    milliseconds per frame: serve it with ``GvStandIn(..., render_ahead=True)``.
+    Noise-free renders whose targets' brightness follows the exposure as the simulated camera's
+    do (``target_dn`` at ``REFERENCE_EXPOSURE_US``); a cell whose program holds still is rendered
+    once per ring-light state and exposure (the last few kept). Safe to call from several threads
+    (the cell is read only). A moving cell takes tens of milliseconds per frame: serve it with
+    ``GvStandIn(..., render_ahead=True)``.
     """
+    from drivers.camera.sim import REFERENCE_EXPOSURE_US
+    from service.sim.render import RenderSettings
+
     t0 = time.monotonic_ns() if t0_ns is None else t0_ns
     still = getattr(cell.config, "program", None) == "hold"
-    cache: dict[bool, np.ndarray] = {}
+    cache: dict[tuple[bool, float], np.ndarray] = {}
+    cache_lock = threading.Lock()  # the render thread and the fake camera's thread both ask
 
-    def render(t_host_ns: int, lit: bool) -> np.ndarray:
-        if still and lit in cache:
-            return cache[lit]
-        image: np.ndarray = cell.render((t_host_ns - t0) * 1e-9, None, lit=lit).image
+    def render(t_host_ns: int, lit: bool, exposure_us: float) -> np.ndarray:
+        key = (lit, exposure_us)
+        with cache_lock:
+            cached = cache.get(key) if still else None
+        if cached is not None:
+            return cached
+        settings = RenderSettings(exposure_scale=exposure_us / REFERENCE_EXPOSURE_US)
+        image: np.ndarray = cell.render((t_host_ns - t0) * 1e-9, None, settings, lit=lit).image
         if still:
-            cache[lit] = image
+            with cache_lock:
+                if len(cache) >= _STILL_RENDERS_KEPT:  # an exposure control's steps: keep the newest
+                    del cache[next(iter(cache))]
+                cache[key] = image
         return image
 
     return render

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -34,7 +35,7 @@ from drivers.base import (  # noqa: E402
 )
 from drivers.camera.aravis import AravisCamera, discover  # noqa: E402
 from drivers.registry import make_camera  # noqa: E402
-from drivers.standins.gv_camera import GvStandIn  # noqa: E402
+from drivers.standins.gv_camera import DEFAULT_XML, GvStandIn, cell_frame_source  # noqa: E402
 
 ADDRESS = os.environ.get("POSECELL_TEST_GV_ADDRESS", "127.0.0.1")
 NO_CAMERA_ADDRESS = "127.0.0.9"  # routed to lo, nothing listens
@@ -44,19 +45,22 @@ PACKET_SIZE = 8192  # loopback: 1400-byte packets lose frames at this size, 8192
 
 
 class CounterSource:
-    """A seeded noise image with the call counter written into the first 8 pixels (little-endian)."""
+    """A seeded noise image with the call counter written into the first 8 pixels (little-endian);
+    ``exposures_us[n - 1]`` is the exposure the camera took frame ``n`` with."""
 
     def __init__(self, seed: int = 7) -> None:
         self.base = np.random.default_rng(seed).integers(0, 256, size=(H, W), dtype=np.uint8)
         self.calls = 0
+        self.exposures_us: list[float] = []
 
     def render(self, n: int) -> np.ndarray:
         img = self.base.copy()
         img[0, :8] = np.frombuffer(int(n).to_bytes(8, "little"), np.uint8)
         return img
 
-    def __call__(self, t_host_ns: int, lit: bool) -> np.ndarray:
+    def __call__(self, t_host_ns: int, lit: bool, exposure_us: float) -> np.ndarray:
         self.calls += 1
+        self.exposures_us.append(exposure_us)
         return self.render(self.calls)
 
     @staticmethod
@@ -64,7 +68,7 @@ class CounterSource:
         return int.from_bytes(image[0, :8].tobytes(), "little")
 
 
-def targets_source(t_host_ns: int, lit: bool) -> np.ndarray:
+def targets_source(t_host_ns: int, lit: bool, exposure_us: float) -> np.ndarray:
     """Dark cell; retro-reflective targets that shine only under the ring light."""
     return lit_targets() if lit else np.full((H, W), DARK, np.uint8)
 
@@ -159,7 +163,7 @@ def test_frames_with_lost_packets_are_counted_and_skipped(standin, camera):
 @pytest.mark.parametrize(("pixel_format", "shift"), [("Mono12", 4), ("Mono16", 8)])
 def test_roi_and_16_bit_formats_cut_the_sensor_window(standin, camera, pixel_format, shift):
     base = CounterSource().base
-    standin(lambda t, lit: base)
+    standin(lambda t, lit, exposure_us: base)
     cam = camera()
     x, y, w, h = 96, 40, 640, 480
     cam.configure(CameraSettings(exposure_us=1000.0, frame_rate_hz=50.0, pixel_format=pixel_format, roi=(x, y, w, h)))
@@ -197,6 +201,110 @@ def test_exposure_gain_trigger_and_strobe_round_trip(standin, camera):
     cam.configure(CameraSettings(exposure_us=800.0, frame_rate_hz=40.0))
     assert read("TriggerMode") == "Off"
     assert read("AcquisitionFrameRate") == pytest.approx(40.0)
+
+
+def test_an_exposure_step_is_written_to_the_running_camera_without_a_restart(standin, camera):
+    source = CounterSource()
+    sim = standin(source)
+    cam = camera()
+    settings = CameraSettings(exposure_us=1500.0, gain_db=0.0, frame_rate_hz=50.0)
+    cam.configure(settings)
+    before = [cam.fetch(2.0) for _ in range(5)]
+    stream = cam._stream
+    cam.configure(replace(settings, exposure_us=800.0))
+    cam.configure(replace(settings, exposure_us=800.0, gain_db=6.0))
+    after = [cam.fetch(2.0) for _ in range(10)]
+
+    assert cam._stream is stream  # the acquisition ran on: no stop, no new stream and buffer pool
+    assert cam.read_feature("ExposureTime") == pytest.approx(800.0) and sim.read_register(0x120) == 800
+    assert cam.read_feature("Gain") == pytest.approx(6.0)
+    counters = [CounterSource.counter(f.image) for f in before + after]
+    assert np.diff(counters).tolist() == [1] * 14, counters  # every frame the camera took came through
+    assert [f.exposure_us for f in before] == [1500.0] * 5
+    assert [f.exposure_us for f in after] == [800.0] * 10  # frames in flight at the step too (documented)
+    # the camera exposed the new time from the next frame it filled: at most a couple were under way
+    exposed_us = [source.exposures_us[n - 1] for n in counters[5:]]
+    assert exposed_us.count(1500.0) <= 3 and exposed_us[-1] == 800.0, exposed_us
+
+
+def test_a_change_of_roi_pixel_format_or_frame_rate_still_restarts_on_a_new_stream(standin, camera):
+    base = CounterSource().base
+    standin(lambda t, lit, exposure_us: base)
+    cam = camera()
+    settings = CameraSettings(exposure_us=1000.0, frame_rate_hz=50.0)
+    cam.configure(settings)
+    cam.fetch(2.0)
+    x, y, w, h = 96, 40, 640, 480
+    for change in ({"roi": (x, y, w, h)}, {"pixel_format": "Mono16"}, {"exposure_us": 700.0, "frame_rate_hz": 40.0}):
+        stream = cam._stream
+        settings = replace(settings, **change)
+        cam.configure(settings)
+        assert cam._stream is not stream, change  # stopped, written whole, restarted on a new stream
+        frame = fetch_fresh(cam)
+        assert frame.image.shape == (h, w), change
+    np.testing.assert_array_equal(frame.image, base[y : y + h, x : x + w].astype(np.uint16) << 8)
+    assert cam.read_feature("ExposureTime") == pytest.approx(700.0)
+    assert cam.read_feature("AcquisitionFrameRate") == pytest.approx(40.0)
+
+
+def _xml_with_exposure_locked_while_acquiring(tmp_path) -> str:
+    """gv_camera.xml with ExposureTime locked (``pIsLocked``) while AcquisitionStart's register reads 1."""
+    xml = DEFAULT_XML.read_text(encoding="utf-8")
+    node = '<Float Name="ExposureTime" NameSpace="Standard">\n'
+    running = (
+        '<IntReg Name="AcquisitionRunning" NameSpace="Custom">\n<Address>0x124</Address>\n<Length>4</Length>\n'
+        "<AccessMode>RO</AccessMode>\n<pPort>Device</pPort>\n<Cachable>NoCache</Cachable>\n"
+        "<Sign>Unsigned</Sign>\n<Endianess>BigEndian</Endianess>\n</IntReg>\n"
+    )
+    assert xml.count(node) == 1 and xml.count("<Port ") == 1
+    xml = xml.replace(node, node + "<pIsLocked>AcquisitionRunning</pIsLocked>\n").replace("<Port ", running + "<Port ")
+    path = tmp_path / "exposure_locked.xml"
+    path.write_text(xml, encoding="utf-8")
+    return str(path)
+
+
+def test_an_exposure_locked_while_acquiring_takes_the_full_path(standin, camera, tmp_path):
+    standin(CounterSource(), xml_path=_xml_with_exposure_locked_while_acquiring(tmp_path))
+    cam = camera()
+    settings = CameraSettings(exposure_us=1500.0, frame_rate_hz=50.0)
+    cam.configure(settings)
+    cam.fetch(2.0)
+    stream = cam._stream
+    cam.configure(replace(settings, exposure_us=900.0))
+    assert cam._stream is not stream  # stopped to write it
+    assert cam.read_feature("ExposureTime") == pytest.approx(900.0)
+    assert fetch_fresh(cam).exposure_us == pytest.approx(900.0)
+
+
+def test_an_exposure_step_on_the_older_features_exposure_time_abs_and_gain_raw(standin, camera):
+    standin(CounterSource(), xml_path=None)  # Aravis' own fake-camera XML: ExposureTimeAbs, GainRaw
+    cam = camera()
+    settings = CameraSettings(exposure_us=2000.0, gain_db=2.0, frame_rate_hz=50.0)
+    cam.configure(settings)
+    cam.fetch(2.0)
+    stream = cam._stream
+    cam.configure(replace(settings, exposure_us=1000.0, gain_db=4.0))
+    assert cam._stream is stream
+    assert cam.read_feature("ExposureTimeAbs") == pytest.approx(1000.0) and cam.read_feature("GainRaw") == 4
+    assert fetch_fresh(cam).exposure_us == pytest.approx(1000.0)
+
+
+def test_the_stand_in_shows_the_cell_dimmer_at_a_shorter_exposure(standin, camera):
+    from service.sim.cell import CellConfig, SimCell
+
+    cell = SimCell(CellConfig(program="hold"))
+    standin(cell_frame_source(cell), width=cell.camera.width, height=cell.camera.height)
+    cam = camera()
+    settings = CameraSettings(exposure_us=2000.0, frame_rate_hz=20.0, strobe=StrobeSettings(line="Line1"))
+    cam.configure(settings)
+    full = fetch_fresh(cam).image
+    cam.configure(replace(settings, exposure_us=1000.0))
+    half = [fetch_fresh(cam) for _ in range(3)][-1].image  # exposed after the step
+    background = np.median(full)
+    targets = (full > background + 40) & (full < 250)  # bright, not saturated
+    assert targets.sum() > 500
+    ratio = (half[targets].mean() - np.median(half)) / (full[targets].mean() - background)
+    assert 0.4 < ratio < 0.6, ratio
 
 
 def test_software_trigger_gives_exactly_one_frame_per_trigger(standin, camera):
