@@ -129,7 +129,7 @@ def test_without_the_control_an_over_exposed_camera_gives_no_pose(tmp_path):
     finally:
         worker.stop()
     results = [m for m in got if m.t_exposure_host_ns is not None]
-    assert health["auto_exposure"] == {"on": False, "steps": 0} and health["exposure_us"] == 8000.0
+    assert health["auto_exposure"] == {"on": False, "steps": 0, "held": None} and health["exposure_us"] == 8000.0
     assert len(results) >= 10 and not any(m.ok for m in results)
     assert {m.reason for m in results} == {"too_few_targets"}
 
@@ -158,3 +158,27 @@ def test_a_camera_refusing_the_exposure_step_has_the_control_switched_off(tmp_pa
     assert health["auto_exposure"]["on"] is False and health["exposure_us"] == 8000.0
     assert health["state"] == "ok" and len(got) > n_before  # the camera itself runs on
     assert any("automatic exposure off" in r.getMessage() and "8000" in r.getMessage() for r in caplog.records)
+
+
+def test_a_held_exposure_control_takes_no_step_until_released(tmp_path):
+    # as while an accuracy test runs (service/runtime/accuracy_test.py holds it): every stop alike
+    worker = _worker(tmp_path, 8000.0, auto=True)
+    worker.hold_exposure("accuracy test 1 (table1) is running")
+    got: list = []
+    worker.subscribe(got.append)
+    worker.start()
+    try:
+        deadline = time.monotonic() + 60.0
+        while len(got) < 15 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        held = worker.health()["cameras"]["cam0"]
+        worker.hold_exposure("")
+        while time.monotonic() < deadline and not (got and got[-1].ok):
+            time.sleep(0.1)
+        released = worker.health()["cameras"]["cam0"]
+    finally:
+        worker.stop()
+    assert held["auto_exposure"] == {"on": True, "steps": 0, "held": "accuracy test 1 (table1) is running"}
+    assert held["exposure_us"] == 8000.0
+    assert released["auto_exposure"]["held"] is None and released["auto_exposure"]["steps"] >= 1
+    assert got[-1].ok

@@ -231,6 +231,8 @@ class AccuracyTests:
     def _run(self, run: _Run, cell: Any, plan: Any) -> None:
         status, error, report, details = "failed", None, None, None
         unsubscribe = self.worker.subscribe(run.on_result)
+        # every stop and lap is measured alike: the exposure the control settled on before the test
+        self.worker.hold_exposure(f"accuracy test {run.id} ({run.kind}) is running")
         try:
             self.store.update(run.id, status="running", progress_message="starting")
             if run.params.mode == "record":
@@ -256,6 +258,7 @@ class AccuracyTests:
             error = f"internal error: {e!r}"
         finally:
             unsubscribe()
+            self.worker.hold_exposure("")
         if details is not None:
             details.update(n_dropped=run.n_dropped, n_unusable=run.n_unusable)
         try:

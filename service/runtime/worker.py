@@ -98,6 +98,7 @@ class Worker:
         self.cameras: dict[str, CameraChannel] = {}
         self.processors: dict[str, CameraProcessor] = {}
         self.exposure: dict[str, ExposureControl] = {}  # per camera with automatic exposure
+        self.exposure_hold = ""  # why the exposure control holds still (an accuracy test runs), or ""
         self.robot: RobotDriver | None = None
         self.robot_state = DeviceState.absent if settings.robot.driver == "none" else DeviceState.starting
         self.robot_error = ""
@@ -240,9 +241,21 @@ class Worker:
         limits = ExposureLimits(target_peak=auto.target_peak, min_us=auto.min_us, max_us=max(auto.min_us, max_us))
         self.exposure[cfg.name] = ExposureControl(limits, cfg.exposure_us)
 
+    def hold_exposure(self, why: str) -> None:
+        """Hold every camera's exposure where it is while ``why`` (non-empty) lasts; "" releases it.
+
+        A test comparing poses taken minutes apart must take them alike: a step between two visits
+        of a position changes which disks clip and moves the pose by tens of µm (seen: 4 σ)."""
+        if why and not self.exposure_hold:
+            held = ", ".join(f"{n} at {c.exposure_us:.0f} us" for n, c in self.exposure.items()) or "none on"
+            self.event("info", "exposure_held", f"automatic exposure held ({held}): {why}")
+        elif not why and self.exposure_hold:
+            self.event("info", "exposure_released", "automatic exposure follows the targets again")
+        self.exposure_hold = why
+
     def _steer_exposure(self, name: str, frame: Frame, pending: Pending) -> None:
         control, ch = self.exposure.get(name), self.cameras.get(name)
-        if control is None or ch is None or pending.outcome is None:
+        if control is None or ch is None or pending.outcome is None or self.exposure_hold:
             return
         if ch.exposure_refused:  # the device cannot take it (a replay, a camera without manual exposure)
             self.exposure.pop(name, None)
@@ -611,7 +624,11 @@ class Worker:
         cams = {name: ch.snapshot() for name, ch in self.cameras.items()}
         for name, cam in cams.items():
             control = self.exposure.get(name)
-            cam["auto_exposure"] = {"on": control is not None, "steps": control.steps if control else 0}
+            cam["auto_exposure"] = {
+                "on": control is not None,
+                "steps": control.steps if control else 0,
+                "held": self.exposure_hold or None,
+            }
         for name, proc in self.processors.items():
             if name not in cams:
                 cams[name] = {"state": str(DeviceState.failed), "error": proc.failed_reason}

@@ -188,6 +188,9 @@ def test_table1_program_visits_forward_then_back(cell, tmp_path):
         assert t["status"] == "done", t
         report = c.get(f"/tests/{t['id']}/report.json").json()
         csv_text = c.get(f"/tests/{t['id']}/samples").text
+        kinds = [e["kind"] for e in c.get("/events", params={"limit": 10_000}).json()["events"]]
+    # the exposure is held while the test runs (a step between visits moved a position by 4 sigma)
+    assert "exposure_held" in kinds and "exposure_released" in kinds
     assert [row["position"] for row in report["rows"]] == ["1", "2", "3"]
     truth = {row["position"]: row for row in t["details"]["truth"]["rows"]}
     for row in report["rows"]:
