@@ -184,3 +184,19 @@ def test_a_child_that_cannot_be_started_is_a_sentence_for_every_frame_and_one_lo
                 process.configure(reference_camera(), reference_field(), MeasureSettings())
     assert sum("could not be started" in r.getMessage() for r in caplog.records) == 1
     assert process.pid is None
+
+
+@pytest.mark.parametrize("request_", [("ping",), ("measure", 0, (4, 4), "|u1", None)])
+def test_a_child_whose_parent_has_gone_ends_quietly_instead_of_with_a_broken_pipe(request_, monkeypatch):
+    """At the service's shutdown the parent closes its end while a frame may be in flight: the
+    child's answer then meets a closed pipe, and it returns (exit code 0) without a traceback."""
+    import multiprocessing
+
+    from service.runtime import measure_process
+
+    monkeypatch.setattr(measure_process.signal, "signal", lambda *a: None)  # the test runner's Ctrl-C stays
+    parent, child_end = multiprocessing.Pipe()
+    parent.send(request_)  # answered: "ok" for the ping, an error (no set-up yet) for the frame
+    parent.close()
+    measure_process.serve(child_end)  # returns; before, the answer raised BrokenPipeError
+    child_end.close()

@@ -339,6 +339,19 @@ def serve(conn: Connection) -> None:
             if kind in ("setup", "buffer"):
                 errors[kind] = f"the {kind} failed: {e!r}"
             else:
-                conn.send(("error", f"{e!r}\n{traceback.format_exc(limit=8)}"))
+                reply = ("error", f"{e!r}\n{traceback.format_exc(limit=8)}")
+                if not _answer(conn, reply):
+                    return
             continue
-        conn.send(("ok", reply))
+        if not _answer(conn, ("ok", reply)):
+            return
+
+
+def _answer(conn: Connection, reply: tuple[str, Any]) -> bool:
+    """Send ``reply``; False when the parent has gone (it stopped or died): the child then ends
+    quietly instead of printing a broken pipe's traceback at every shutdown."""
+    try:
+        conn.send(reply)
+    except OSError:  # BrokenPipeError, ConnectionResetError: nobody is listening any more
+        return False
+    return True
