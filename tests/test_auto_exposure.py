@@ -182,3 +182,11 @@ def test_a_held_exposure_control_takes_no_step_until_released(tmp_path):
     assert held["exposure_us"] == 8000.0
     assert released["auto_exposure"]["held"] is None and released["auto_exposure"]["steps"] >= 1
     assert got[-1].ok
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 230])
+def test_the_frame_background_is_the_median_of_the_disks_backgrounds(n):
+    from service.pipeline.measure import _median
+
+    x = np.random.default_rng(n).uniform(5.0, 40.0, n)
+    assert _median(x) == pytest.approx(float(np.median(x)), abs=1e-12)

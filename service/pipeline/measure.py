@@ -176,7 +176,17 @@ class Brightness:
             return cls(0, 0.0, 0.0, n_saturated, full_dn)
         k = min(n - 1, int(0.9 * n))
         peak = float(np.partition(blobs.peak_dn, k)[k])  # a partition, not a sort: ~200 disks a frame
-        return cls(n, peak, float(np.median(blobs.background_dn)), n_saturated, full_dn)
+        return cls(n, peak, _median(blobs.background_dn), n_saturated, full_dn)
+
+
+def _median(x: NDArray[np.float64]) -> float:
+    """``np.median`` of a 1-D array by a partition about the middle: 6 us against np.median's 31 us
+    for the ~230 disks of every frame (its general path copies, checks for NaN and reduces)."""
+    h = len(x) // 2
+    if len(x) % 2:
+        return float(np.partition(x, h)[h])
+    p = np.partition(x, (h - 1, h))
+    return 0.5 * (float(p[h - 1]) + float(p[h]))
 
 
 @dataclass(frozen=True)
