@@ -2,7 +2,7 @@
 
 :func:`render_in_child` (the serving process) starts :func:`render_frames` in a
 process of its own with multiprocessing ``spawn`` (a fresh interpreter: no fork
-of the service's threads and locks), so that rendering (~35 ms a 1300 x 1030
+of the service's threads and locks), so that rendering (~30 ms a moving 1300 x 1030
 frame) runs on a core of its own and never under the service's GIL. The child
 writes the frames into a file-backed ``np.memmap`` in ``/dev/shm`` (shared
 memory; the system's temporary folder where there is none) and sends the truth

@@ -1,7 +1,7 @@
 """The simulated camera's renderer: frames rendered in a child process, ahead of their exposure.
 
-Why: rendering a 1300 x 1030 frame of the simulated cell takes ~35 ms of Python
-and NumPy. Done in the camera's acquisition thread it competes for the service's
+Why: rendering a 1300 x 1030 frame of the simulated cell takes ~30 ms (compiled
+coverage and noise, the rest NumPy). Done in the camera's acquisition thread it competes for the service's
 GIL with the measurement thread, and the camera delivers about half the frames
 it is configured for. :class:`FrameRenderer` moves that work to a process of its
 own, started with multiprocessing ``spawn`` (a fresh interpreter: no fork of the

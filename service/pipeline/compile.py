@@ -1,7 +1,8 @@
 """Compile the measurement's numba kernels ahead of their first use, two at a time.
 
 On a fresh machine the kernels compile when first called: ~2 min on one core of the project's VM
-(detection with the contour tracer ~55 s, geometry and resection 48 s, the ring reader 13 s). numba caches them beside
+(detection with the contour tracer ~55 s, geometry and resection 48 s, the ring reader 13 s, the
+simulation's renderer 8 s). numba caches them beside
 their modules (``cache=True``) and every later process loads them in well under a second.
 ``python -m service.pipeline.compile`` compiles them in two processes at once, so the first start
 of the service or of the tests waits about half as long; ``deploy/dev.sh`` runs it after installing.
@@ -17,7 +18,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 # two groups of about equal compile time; each module's warm_up() compiles its kernels
 GROUPS = (
-    ("service.core._kernels.detect_kernel", "service.core._kernels.roi_kernel"),
+    ("service.core._kernels.detect_kernel", "service.core._kernels.roi_kernel", "service.sim._raster_kernel"),
     ("service.core._kernels.geometry_kernels", "service.core._kernels.resection_kernel", "service.core.targets.decode"),
 )
 

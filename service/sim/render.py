@@ -49,6 +49,7 @@ from service.core.geometry.camera_model import BrownFraser
 from service.core.geometry.frames import apply_T, check_T, inv_T
 from service.core.targets.codes import RING_OUTER
 from service.core.targets.field import Field
+from service.sim._raster_kernel import noise_kernel, quantise_kernel
 from service.sim.raster import pattern_coverage
 
 Array = NDArray[np.float64]
@@ -188,16 +189,6 @@ def _normal_table() -> NDArray[np.float32]:
     return table
 
 
-def _normal(rng: np.random.Generator, shape: tuple[int, int], sigma: float) -> NDArray[np.float32]:
-    """Normal variates (mean 0, std ``sigma``) by inverse transform of 16-bit uniforms.
-
-    Four times faster than ``rng.standard_normal`` for a frame; the tails are
-    cut at 4.3 sigma, which no image statistic here depends on.
-    """
-    u = rng.integers(0, 65536, size=shape, dtype=np.uint16)
-    return np.take(_normal_table() * np.float32(sigma), u)
-
-
 def _accumulate(
     flat: NDArray[np.intp], values: NDArray[np.float32], size: int, overlapping: bool
 ) -> NDArray[np.float32]:
@@ -249,30 +240,24 @@ def _compose(
         img[r0 : r1 + 1, c0 : c1 + 1] *= (1.0 - ndtr((r - d) / sigma_edge)).astype(f32)
     img += f32(s.background_dn)
     if rng is not None:
-        # variance (DN^2) = level / e + read^2 = (level + read^2 e) / e, e = electrons_per_dn
+        # variance (DN^2) = level / e + read^2 = (level + read^2 e) / e, e = electrons_per_dn; normal
+        # variates by inverse transform of 16-bit uniforms: four times faster than rng.standard_normal
+        # for a frame, the tails cut at 4.3 sigma, which no image statistic here depends on
         epd = s.electrons_per_dn
-        z = _normal(rng, img.shape, 1.0 / np.sqrt(epd))
-        read_e2 = f32(s.read_noise_dn**2 * epd)
-        low = None
-        if float(img.min()) * epd < EXACT_POISSON_BELOW_E:
-            low = img < f32(EXACT_POISSON_BELOW_E / epd)
+        u16 = rng.integers(0, 65536, size=img.shape, dtype=np.uint16)
+        z_table = _normal_table() * f32(1.0 / np.sqrt(epd))
+        low = img < f32(EXACT_POISSON_BELOW_E / epd) if float(img.min()) * epd < EXACT_POISSON_BELOW_E else None
+        exact = None
+        if low is not None:  # too few electrons for the normal approximation: Poisson itself
             lam_e = np.maximum(img[low], 0).astype(np.float64) * epd
-            exact = rng.poisson(lam_e) / epd + (s.read_noise_dn * np.sqrt(epd)) * z[low]
-            sigma = np.maximum(img, 0)
-            sigma += read_e2
-        else:
-            sigma = img + read_e2
-        np.sqrt(sigma, out=sigma)
-        sigma *= z
-        img += sigma
+            exact = rng.poisson(lam_e) / epd + (s.read_noise_dn * np.sqrt(epd)) * z_table[u16[low]]
+        noise_kernel(img, u16, z_table, f32(s.read_noise_dn**2 * epd))
         if low is not None:
             img[low] = exact
     full_scale = 2**s.bit_depth - 1
-    if s.bit_depth != 8:
-        img *= f32(full_scale / 255.0)
-    img += f32(0.5)  # the cast truncates, so this rounds to nearest
-    np.clip(img, 0.0, full_scale + 0.5, out=img)
-    return img.astype(np.uint8 if s.bit_depth == 8 else np.uint16)
+    out = np.empty(img.shape, dtype=np.uint8 if s.bit_depth == 8 else np.uint16)
+    quantise_kernel(img, f32(full_scale / 255.0), full_scale, out)
+    return out
 
 
 @dataclass(frozen=True)
@@ -289,7 +274,7 @@ class _Targets:
     uv_true: Array  # (M, 2)
     uv_disk_centroid: Array  # (M, 2)
     outline_uv: Array  # (M, OUTLINE_POINTS, 2) outer edge of the whole pattern
-    level_dn: Array  # (M,) brightness of a fully covered pixel before blur
+    relative_level: Array  # (M,) a fully covered pixel's brightness before blur, in units of target_dn x exposure_scale
 
 
 def _targets_in_view(
@@ -297,7 +282,6 @@ def _targets_in_view(
     field: Field,
     T_field_camera: Array,
     normals_field: NDArray[np.float64] | None,
-    settings: RenderSettings,
 ) -> _Targets:
     n = len(field)
     T_camera_field = inv_T(T_field_camera)
@@ -338,17 +322,10 @@ def _targets_in_view(
     outline_uv[coded_k] = uv[m + m * OUTLINE_POINTS :].reshape(-1, OUTLINE_POINTS, 2)
     finite = np.all(np.isfinite(outline_uv), axis=(1, 2)) & np.all(np.isfinite(uv_true), axis=1)
 
-    s = settings
-    level = np.zeros(m)
-    if s.lit:
-        d = dist[keep]
-        level = (
-            s.target_dn
-            * s.exposure_scale
-            * (REFERENCE_DISTANCE_MM / d) ** 2
-            * cos_inc[keep] ** INCIDENCE_POWER
-            * (p0[keep, 2] / d) ** VIGNETTING_POWER
-        )
+    d = dist[keep]
+    relative_level = (
+        (REFERENCE_DISTANCE_MM / d) ** 2 * cos_inc[keep] ** INCIDENCE_POWER * (p0[keep, 2] / d) ** VIGNETTING_POWER
+    )
     f = finite
     return _Targets(
         index=keep[f],
@@ -361,8 +338,101 @@ def _targets_in_view(
         uv_true=uv_true[f],
         uv_disk_centroid=_polygon_centroid(disk_uv[f]),
         outline_uv=outline_uv[f],
-        level_dn=level[f],
+        relative_level=relative_level[f],
     )
+
+
+@dataclass(frozen=True)
+class _Footprint:
+    """What a pose gives whatever the light: the targets in view and the pixels their patterns cover."""
+
+    targets: _Targets
+    boxed: NDArray[np.intp]  # (m,) rows of ``targets`` with a pixel box in the image
+    owner: NDArray[np.intp]  # (K,) row of ``boxed`` of each covered pixel
+    flat: NDArray[np.intp]  # (K,) pixel index v * width + u
+    cover: NDArray[np.float32]  # (K,) covered fraction
+    overlapping: bool  # whether two boxes may share a pixel
+    in_image: NDArray[np.bool_]  # (m,) covers at least part of a pixel
+
+
+@dataclass(frozen=True, eq=False)
+class _Pose:
+    """A footprint's key: the very camera and field objects, the pose's bytes, the normals and the sampling."""
+
+    camera: BrownFraser
+    field: Field
+    T_field_camera: Array
+    normals_field: NDArray[np.float64] | None
+    supersample: int
+
+    def _bytes(self) -> tuple[bytes, bytes | None, int]:
+        normals = None if self.normals_field is None else self.normals_field.tobytes()
+        return self.T_field_camera.tobytes(), normals, self.supersample
+
+    def __hash__(self) -> int:
+        return hash((id(self.camera), id(self.field), *self._bytes()))
+
+    def __eq__(self, other: object) -> bool:
+        return (
+            isinstance(other, _Pose)
+            and other.camera is self.camera
+            and other.field is self.field
+            and other._bytes() == self._bytes()
+        )
+
+
+def _footprint(
+    camera: BrownFraser,
+    field: Field,
+    T_field_camera: Array,
+    normals_field: NDArray[np.float64] | None,
+    supersample: int,
+) -> _Footprint:
+    """The targets in view from ``T_field_camera`` and their coverage of the pixels.
+
+    The simulated camera renders the same pose again and again: every frame of a still cell, and
+    the frames it asked for ahead when the exposure steps. The footprint is three quarters of a
+    frame's work, so the last few are kept.
+    """
+    T = T_field_camera.copy()  # the key's own, read-only: a caller's later change cannot alter it
+    T.setflags(write=False)
+    normals = None if normals_field is None else np.array(normals_field, dtype=np.float64)
+    if normals is not None:
+        normals.setflags(write=False)
+    return _footprint_of(_Pose(camera, field, T, normals, supersample))
+
+
+@lru_cache(maxsize=8)
+def _footprint_of(pose: _Pose) -> _Footprint:
+    camera, field = pose.camera, pose.field
+    width, height = camera.width, camera.height
+    tg = _targets_in_view(camera, field, pose.T_field_camera, pose.normals_field)
+    # pixel boxes: every pixel whose square may touch the pattern (the outline polygon's
+    # edges cut inside the circle, so pad by the largest sagitta too)
+    ext = tg.outline_uv.max(axis=1) - tg.outline_uv.min(axis=1)
+    sag = 0.5 * ext.max(axis=1, keepdims=True) * (1.0 - np.cos(np.pi / OUTLINE_POINTS)) + 0.51
+    lo = np.floor(tg.outline_uv.min(axis=1) - sag).astype(np.intp)
+    hi = np.ceil(tg.outline_uv.max(axis=1) + sag).astype(np.intp)
+    u0, v0 = np.maximum(lo[:, 0], 0), np.maximum(lo[:, 1], 0)
+    u1, v1 = np.minimum(hi[:, 0], width - 1), np.minimum(hi[:, 1], height - 1)
+    boxed = np.flatnonzero((u1 >= u0) & (v1 >= v0))
+    u0, v0, u1, v1 = u0[boxed], v0[boxed], u1[boxed], v1[boxed]
+    owner, flat, cover = pattern_coverage(
+        camera,
+        tg.p0[boxed],
+        tg.normal[boxed],
+        tg.ex[boxed],
+        tg.ey[boxed],
+        tg.radius[boxed],
+        field.codes[tg.index[boxed]],
+        np.stack([u0, v0, u1, v1], axis=1),
+        pose.supersample,
+    )
+    in_image = np.bincount(owner, weights=cover, minlength=boxed.size) > 0
+    fp = _Footprint(tg, boxed, owner, flat, cover, _boxes_overlap(u0, v0, u1, v1), in_image)
+    for a in (boxed, owner, flat, cover, in_image):
+        a.setflags(write=False)  # shared by every frame of this pose
+    return fp
 
 
 def render_frame(
@@ -397,39 +467,18 @@ def render_frame(
         at least partly in it.
     """
     T_field_camera = check_T(T_field_camera, "T_field_camera").copy()
-    width, height = camera.width, camera.height
-    tg = _targets_in_view(camera, field, T_field_camera, normals_field, settings)
-
-    # pixel boxes: every pixel whose square may touch the pattern (the outline polygon's
-    # edges cut inside the circle, so pad by the largest sagitta too)
-    ext = tg.outline_uv.max(axis=1) - tg.outline_uv.min(axis=1)
-    sag = 0.5 * ext.max(axis=1, keepdims=True) * (1.0 - np.cos(np.pi / OUTLINE_POINTS)) + 0.51
-    lo = np.floor(tg.outline_uv.min(axis=1) - sag).astype(np.intp)
-    hi = np.ceil(tg.outline_uv.max(axis=1) + sag).astype(np.intp)
-    u0, v0 = np.maximum(lo[:, 0], 0), np.maximum(lo[:, 1], 0)
-    u1, v1 = np.minimum(hi[:, 0], width - 1), np.minimum(hi[:, 1], height - 1)
-    boxed = np.flatnonzero((u1 >= u0) & (v1 >= v0))
-    u0, v0, u1, v1 = u0[boxed], v0[boxed], u1[boxed], v1[boxed]
-    m = boxed.size
-
-    boxes = np.stack([u0, v0, u1, v1], axis=1)
-    owner, flat, cover = pattern_coverage(
-        camera,
-        tg.p0[boxed],
-        tg.normal[boxed],
-        tg.ex[boxed],
-        tg.ey[boxed],
-        tg.radius[boxed],
-        field.codes[tg.index[boxed]],
-        boxes,
-        settings.supersample,
+    fp = _footprint(camera, field, T_field_camera, normals_field, settings.supersample)
+    tg, boxed = fp.targets, fp.boxed
+    level_dn = (
+        settings.target_dn * settings.exposure_scale * tg.relative_level[boxed]
+        if settings.lit
+        else np.zeros(boxed.size)
     )
-    in_image = np.bincount(owner, weights=cover, minlength=m) > 0
-    values = cover * tg.level_dn[boxed].astype(np.float32)[owner]
-    signal = _accumulate(flat, values, width * height, _boxes_overlap(u0, v0, u1, v1))
-    image = _compose(signal.reshape(height, width), settings, rng)
+    values = fp.cover * level_dn.astype(np.float32)[fp.owner]
+    signal = _accumulate(fp.flat, values, camera.width * camera.height, fp.overlapping)
+    image = _compose(signal.reshape(camera.height, camera.width), settings, rng)
 
-    shown = boxed[in_image]
+    shown = boxed[fp.in_image]
     outline = tg.outline_uv[shown]
     fully = np.all(camera.in_image(outline, margin_px=1.0), axis=1)
     for ou, ov, r in settings.occluders:

@@ -9,7 +9,6 @@ from service.core.geometry.camera_model import BrownFraser
 from service.core.geometry.frames import apply_T, inv_T, make_T
 from service.core.targets.codes import N_BITS, RING_INNER, RING_OUTER, bits_of
 from service.core.targets.field import Field
-from service.sim.raster import ideal_grid
 from service.sim.render import RenderSettings, plane_axes_field, render_frame
 from service.sim.scene import reference_camera, reference_field, reference_pose
 
@@ -339,15 +338,28 @@ def test_settings_reject_impossible_values():
         RenderSettings(occluders=((1.0, 2.0, -3.0),))
 
 
-def test_separable_correction_matches_the_camera_model():
+def test_a_disk_in_the_corner_covers_the_area_its_rays_hit():
+    """The compiled coverage maps pixels to the target's plane through the camera's own correction:
+    ~28 px of it in the corners, so a kernel that got it wrong would be far off here."""
     cam = reference_camera()
-    cols = np.arange(0, 1300, 7.0)[None, None, :]
-    rows = np.arange(0, 1030, 11.0)[None, :, None]
-    x, y = ideal_grid(cam, cols, rows)
-    uu, vv = np.broadcast_arrays(cols, rows)
-    expected = cam.ideal_from_pixel(np.stack([uu.ravel(), vv.ravel()], axis=1))
-    assert np.max(np.abs(x.ravel() - expected[:, 0])) < 1e-12
-    assert np.max(np.abs(y.ravel() - expected[:, 1])) < 1e-12
+    T = reference_pose()
+    xyz = np.array([300.0, 230.0, 0.0])
+    frame = render_frame(
+        cam, one_target(diameter_mm=20.0, xyz=tuple(xyz)), T, RenderSettings(blur_sigma_px=0.0, background_dn=0.0)
+    )
+    img = frame.image.astype(float)
+    peak = np.median(img[img > 0.99 * img.max()])  # fully covered pixels
+    area_rendered_px2 = img.sum() / peak
+    step = 0.125  # independent: a ray per sub-pixel, hit or miss
+    uv0 = frame.uv_true[0]
+    g = np.arange(-22.0, 22.0, step) + step / 2
+    uu, vv = np.meshgrid(uv0[0] + g, uv0[1] + g)
+    rays_field = cam.rays_from_pixel(np.stack([uu.ravel(), vv.ravel()], axis=1)) @ T[:3, :3].T
+    t = -T[2, 3] / rays_field[:, 2]
+    hit = T[:2, 3] + t[:, None] * rays_field[:, :2] - xyz[:2]
+    area_cast_px2 = np.count_nonzero(np.sum(hit**2, axis=1) <= 10.0**2) * step**2
+    assert np.linalg.norm(uv0 - [650, 515]) > 400  # in a corner indeed
+    assert abs(area_rendered_px2 / area_cast_px2 - 1.0) < 0.005
 
 
 # -- the reference scene -----------------------------------------------------
