@@ -21,9 +21,10 @@ It behaves like a GigE Vision camera in the ways the worker depends on:
   link but delivers no frame (a stuck stream: only timeouts); ``garble()`` delivers frames of
   noise (a broken sensor or a wrong pixel format); ``plug()`` ends every fault.
 
-Rendering (~35 ms a frame) stands in for the camera's exposure and readout; it runs in a child
-process (``sim_render.FrameRenderer``), not under the service's GIL. Knowing its schedule, the
-camera asks for the next ``AHEAD_FRAMES`` frames at once and copies each image out when due.
+Rendering (~30 ms a frame, ~12 ms for a pose rendered before) stands in for the camera's exposure
+and readout; it runs in a child process (``sim_render.FrameRenderer``), not under the service's
+GIL. Knowing its schedule, the camera asks for the next ``AHEAD_FRAMES`` frames at once and
+copies each image out when due.
 A frame's pose is the cell's at mid-exposure (program and commanded moves), computed when it is
 asked for and checked again before and after it is taken: a move commanded after a frame was
 asked for (the hand-eye session moving the arm) has it rendered again, so it may come late
@@ -68,7 +69,7 @@ _LIT_SOURCES = ("ExposureActive", "Timer0Active", "Timer1Active")
 _BIT_DEPTH = {"Mono8": 8, "Mono12": 12, "Mono16": 16}
 REFERENCE_EXPOSURE_US = 2000.0  # the exposure at which RenderSettings.target_dn is reached
 AHEAD_FRAMES = 3  # free run: frames asked of the render process at once (the next one and two more)
-STALE_NS = 250_000_000  # a frame asked for but due longer ago than this is dropped (nobody fetched it)
+STALE_NS = 500_000_000  # a frame due longer ago than this is dropped (the driver's buffers, ~10 frames at 20 Hz)
 RENDER_MARGIN = 1.5  # a frame is asked for when it can be rendered in this many render times before it is due
 
 
@@ -137,6 +138,7 @@ class SimCamera:
         self._garbled = False
         self._next_seq = 0
         self._last_exposure_start_ns: int | None = None
+        self._last_version = -1  # the settings' version of the frame delivered last
         self._triggers: list[int] = []
         self._plan: collections.deque[_Planned] = collections.deque()  # asked for, in exposure order
         self._lock = threading.Lock()  # trigger() may come from another thread than fetch()
@@ -229,7 +231,7 @@ class SimCamera:
         self._plan.popleft()
         self._require_link()  # unplugged while "in flight": the frame is lost with the link
         seq = self._seq_of(p.t_start_ns)
-        self._last_exposure_start_ns = p.t_start_ns
+        self._last_exposure_start_ns, self._last_version = p.t_start_ns, p.version
         exposure_ns = int(p.exposure_us * 1e3)
         return Frame(
             image=image,
@@ -354,7 +356,8 @@ class SimCamera:
             self._plan[i] = self._ask(p.t_start_ns, p.t_arrival_ns + shift_ns)
 
     def _fill_plan(self, now_ns: int) -> None:
-        """Free run: ask for the next frames on the grid that can be rendered before they are due."""
+        """Free run: ask for the next frames on the grid that can be rendered before they are due (or that
+        wait in the buffers for a consumer that came late)."""
         while self._plan and self._plan[0].t_arrival_ns < now_ns - STALE_NS:  # nobody fetched it in time
             self._renderer.cancel(self._plan.popleft().ticket)
         ahead = AHEAD_FRAMES if self._renderer.child_ready else 1  # in-process: rendered when taken
@@ -373,7 +376,16 @@ class SimCamera:
             k = math.ceil((ready_ns - self.epoch_ns - exposure_ns - self.latency_ns) / period)
             last = self._plan[-1].t_start_ns if self._plan else self._last_exposure_start_ns
             if last is not None:  # once asked for, a frame stays the next one until delivered or stale
-                k = max(k, (last - self.epoch_ns) // period + 1)
+                k_next = (last - self.epoch_ns) // period + 1
+                # a consumer that came late (a stalled thread) finds the frames since in the driver's
+                # buffers, as a real camera's, and they come late; a renderer too slow for the rate
+                # skips them instead, as before, so that its frames are never late
+                buffered = (
+                    (bool(self._plan) or self._last_version == self._version)
+                    and self._renderer.render_s * 1e9 < period  # it catches up
+                    and self.epoch_ns + k_next * period + exposure_ns + self.latency_ns >= now_ns - STALE_NS
+                )
+                k = k_next if buffered else max(k, k_next)
             self._plan.append(self._ask(self.epoch_ns + k * period))
             backlog += 1
 

@@ -94,6 +94,24 @@ def test_free_run_frames_from_the_child_equal_in_process_renders_of_their_exposu
     assert np.diff([f.seq for f in frames]).tolist() == [1, 1, 1, 1]
 
 
+def test_a_consumer_that_stalls_finds_the_frames_since_in_the_buffers_and_beyond_them_loses_some(child_camera):
+    child_camera.configure(CameraSettings(exposure_us=2000.0, frame_rate_hz=20.0, strobe=LIT))
+    period_ns = int(1e9 / 20.0)
+    first = _fetch(child_camera, 3)
+    time.sleep(0.3)  # six periods: a garbage collection, a busy thread
+    after = _fetch(child_camera, 1)
+    waited_ns = time.monotonic_ns() - after[0].t_host_ns
+    after += _fetch(child_camera, 9)
+    frames = first + after
+    assert np.diff([f.seq for f in frames]).tolist() == [1] * (len(frames) - 1)  # none lost
+    assert np.diff([f.t_host_ns for f in frames]).tolist() == pytest.approx([period_ns] * 12, abs=3e6)  # as scheduled
+    assert waited_ns > 150_000_000  # the first after the stall had waited in the buffers
+    time.sleep(1.0)  # longer than the buffers hold
+    late = _fetch(child_camera, 3)
+    assert late[0].seq > after[-1].seq + 1  # the oldest are gone
+    assert np.diff([f.seq for f in late]).tolist() == [1, 1]
+
+
 def test_roi_exposure_gain_bit_depth_and_strobe_reach_the_child_rendered_image(child_camera):
     def brightest(settings: CameraSettings) -> float:
         child_camera.configure(settings)
