@@ -134,17 +134,20 @@ class Hub:
         loop = self._loop
         if loop is None or loop.is_closed() or not self.clients:
             return  # nobody listens: no encoding
-        text = result.json  # encoded once for every client
-        lite = result.json_without_targets if any(not c.targets for c in list(self.clients)) else text
+        # encoded once for every client, here rather than in the loop; the variant without the
+        # targets only if a client wants it now (one that connects meanwhile has it encoded there)
+        texts: list[str | None] = [result.json, None]
+        if any(not c.targets for c in list(self.clients)):
+            texts[1] = result.json_without_targets
         # decimation runs on the exposure instant; an outage result has none: its publication then
         t_ns = result.t_exposure_host_ns if result.t_exposure_host_ns is not None else time.monotonic_ns()
         meta = (result.camera or None, t_ns)
         try:
-            loop.call_soon_threadsafe(self._publish, (text, lite), meta)
+            loop.call_soon_threadsafe(self._publish, result, texts, meta)
         except RuntimeError:  # the loop closed between the check and the call (shutdown)
             pass
 
-    def _publish(self, texts: tuple[str, str], meta: tuple[str | None, int]) -> None:
+    def _publish(self, result: Measurement, texts: list[str | None], meta: tuple[str | None, int]) -> None:
         camera, t_ns = meta
         frames: list[bytes | None] = [None, None]  # each variant framed once, for every client
         for c in list(self.clients):
@@ -155,11 +158,14 @@ class Hub:
                 continue
             c.last_sent_ns[key] = t_ns
             variant = 0 if c.targets else 1
+            text = texts[variant]
+            if text is None:  # a client without targets connected after the result was encoded
+                text = texts[1] = result.json_without_targets
             w = c.writer
             if w is not None and not c.busy and c.queue.empty() and w.ready():
                 frame = frames[variant]
                 if frame is None:
-                    frame = frames[variant] = ws_frame(texts[variant])
+                    frame = frames[variant] = ws_frame(text)
                 w.write(frame)
                 c.sent += 1
                 self.sent_direct += 1
@@ -168,7 +174,7 @@ class Hub:
                 c.queue.get_nowait()
                 c.dropped += 1
                 self.dropped_total += 1
-            c.queue.put_nowait(texts[variant])
+            c.queue.put_nowait(text)
 
     async def send(self, websocket: WebSocket, client: Client, text: str) -> None:
         """Send one message; raises StalledClient when the client has not read for ``stall_timeout_s``."""

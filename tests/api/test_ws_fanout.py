@@ -4,14 +4,18 @@ ASGI path."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import struct
 import threading
 
+import numpy as np
 import pytest
 from websockets.sync.client import connect
 
-from api.ws import ws_frame
+from api.ws import Hub, ws_frame
+from service.core.measurement import Measurement
+from service.core.results import PoseResult, TargetTable
 from service.settings import load_settings
 from tests.api.conftest import free_port, run_server
 
@@ -21,6 +25,26 @@ def test_a_frame_is_an_unmasked_final_text_frame_with_the_length_as_rfc_6455_say
         assert ws_frame("x" * n) == head + b"x" * n
     big = ws_frame("é" * 40_000)  # 80 000 bytes of UTF-8: the 64-bit length
     assert big[:2] == b"\x81\x7f" and struct.unpack("!Q", big[2:10])[0] == 80_000 and len(big) == 80_010
+
+
+def test_a_client_without_targets_that_connects_while_a_result_is_on_its_way_gets_it_without_them():
+    """The worker encodes a result's variants in its thread; the loop sends it a moment later. A
+    client that connected in between must still get its variant (it once got the full text)."""
+    table = TargetTable(("C1", "C2"), np.zeros((2, 2)), np.zeros((2, 2)), np.ones(2, bool), np.ones(2, bool))
+    result = PoseResult(np.eye(4), np.full(3, 0.01), np.full(3, 0.001), 0.05, 0.05, table)
+
+    async def scenario():
+        hub = Hub()
+        hub.bind(asyncio.get_running_loop())
+        full = hub.add(None, None)
+        hub.publish_threadsafe(Measurement("cam0", result, 1, 1, seq=1))  # only full clients yet
+        lite = hub.add(None, None, targets=False)  # connects before the loop runs the publication
+        await asyncio.sleep(0.01)
+        return json.loads(full.queue.get_nowait()), json.loads(lite.queue.get_nowait())
+
+    to_full, to_lite = asyncio.run(scenario())
+    assert [t["id"] for t in to_full["targets"]] == ["C1", "C2"]
+    assert "targets" not in to_lite and to_lite["seq"] == to_full["seq"] == 1
 
 
 def _read(url: str, n: int, out: list[dict], compression: str | None = "deflate") -> None:
