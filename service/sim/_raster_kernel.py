@@ -14,6 +14,7 @@ import math
 import numpy as np
 from numba import njit
 
+from service.core._kernels.geometry_kernels import correction_point
 from service.core.targets.codes import N_BITS, RING_INNER, RING_OUTER
 
 _SECTOR_RAD = 2.0 * math.pi / N_BITS
@@ -108,10 +109,8 @@ def coverage_kernel(cam, H9, boxes, reach, full, code_row, bits, bits_before, tr
             for u in range(boxes[k, 0], boxes[k, 2] + 1):
                 # ideal coordinates: the correction of the measured sensor position
                 x = (u - cu) * px - x0
-                r2 = x * x + y * y
-                radial = r2 * (K1 + r2 * (K2 + r2 * K3))
-                xi_ideal = x + (x * radial + P1 * (r2 + 2 * x * x) + 2 * P2 * x * y + B1 * x + B2 * y)
-                yi_ideal = y + (y * radial + 2 * P1 * x * y + P2 * (r2 + 2 * y * y))
+                dx, dy, c00, c01, c10, c11 = correction_point(x, y, K1, K2, K3, P1, P2, B1, B2)
+                xi_ideal, yi_ideal = x + dx, y + dy
                 w = h6 * xi_ideal + h7 * yi_ideal + h8
                 if not w > 0.0:  # the ray misses the plane in front
                     continue
@@ -138,11 +137,7 @@ def coverage_kernel(cam, H9, boxes, reach, full, code_row, bits, bits_before, tr
                         n += 1
                     continue
                 # the square's map to the plane, linearised: d(xi, eta)/d(u, v), through the correction
-                g = K1 + r2 * (2 * K2 + 3 * K3 * r2)
-                d00 = (1 + radial + 2 * x * x * g + 6 * P1 * x + 2 * P2 * y + B1) * px
-                d01 = (2 * x * y * g + 2 * P1 * y + 2 * P2 * x + B2) * py
-                d10 = (2 * x * y * g + 2 * P1 * y + 2 * P2 * x) * px
-                d11 = (1 + radial + 2 * y * y * g + 2 * P1 * x + 6 * P2 * y) * py
+                d00, d01, d10, d11 = c00 * px, c01 * py, c10 * px, c11 * py
                 a00, a01 = (h0 - xi * h6) * inv_w, (h1 - xi * h7) * inv_w
                 a10, a11 = (h3 - eta * h6) * inv_w, (h4 - eta * h7) * inv_w
                 j00, j01 = a00 * d00 + a01 * d10, a00 * d01 + a01 * d11

@@ -115,6 +115,23 @@ def point_statistics_kernel(v, A, Qxx, sign):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def correction_point(x, y, K1, K2, K3, P1, P2, B1, B2):
+    """The Brown/Fraser correction (dx, dy) mm at one point (x, y) mm relative to the principal point,
+    and the Jacobian (j00, j01, j10, j11) of (x + dx, y + dy) by (x, y): the one formula of every
+    kernel that corrects (``BrownFraser._correction`` and its Jacobian, in the same order)."""
+    r2 = x * x + y * y
+    radial = r2 * (K1 + r2 * (K2 + r2 * K3))
+    dx = x * radial + P1 * (r2 + 2 * x * x) + 2 * P2 * x * y + B1 * x + B2 * y
+    dy = y * radial + 2 * P1 * x * y + P2 * (r2 + 2 * y * y)
+    g = K1 + r2 * (2 * K2 + 3 * K3 * r2)
+    j00 = 1 + radial + 2 * x * x * g + 6 * P1 * x + 2 * P2 * y + B1
+    j01 = 2 * x * y * g + 2 * P1 * y + 2 * P2 * x + B2
+    j10 = 2 * x * y * g + 2 * P1 * y + 2 * P2 * x
+    j11 = 1 + radial + 2 * y * y * g + 2 * P1 * x + 6 * P2 * y
+    return dx, dy, j00, j01, j10, j11
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _sensor_from_ideal_point(tx, ty, K1, K2, K3, P1, P2, B1, B2, max_iter):
     """Newton inverse of the Brown/Fraser correction at one ideal point (mm, relative to the
     principal point): the measured point, until the step is below 1e-12 mm. NaN where there is
@@ -125,16 +142,8 @@ def _sensor_from_ideal_point(tx, ty, K1, K2, K3, P1, P2, B1, B2, max_iter):
     det = 1.0
     converged = max_iter <= 0  # no step asked for: the start
     for _ in range(max_iter):
-        r2 = xb * xb + yb * yb
-        radial = r2 * (K1 + r2 * (K2 + r2 * K3))
-        dx = xb * radial + P1 * (r2 + 2 * xb * xb) + 2 * P2 * xb * yb + B1 * xb + B2 * yb
-        dy = yb * radial + 2 * P1 * xb * yb + P2 * (r2 + 2 * yb * yb)
+        dx, dy, j00, j01, j10, j11 = correction_point(xb, yb, K1, K2, K3, P1, P2, B1, B2)
         rx, ry = xb + dx - tx, yb + dy - ty
-        g = K1 + r2 * (2 * K2 + 3 * K3 * r2)
-        j00 = 1 + radial + 2 * xb * xb * g + 6 * P1 * xb + 2 * P2 * yb + B1
-        j01 = 2 * xb * yb * g + 2 * P1 * yb + 2 * P2 * xb + B2
-        j10 = 2 * xb * yb * g + 2 * P1 * yb + 2 * P2 * xb
-        j11 = 1 + radial + 2 * yb * yb * g + 2 * P1 * xb + 6 * P2 * yb
         det = j00 * j11 - j01 * j10
         sx, sy = (j11 * rx - j01 * ry) / det, (-j10 * rx + j00 * ry) / det
         xb -= sx
@@ -170,15 +179,9 @@ def whitened_ideal_kernel(uv, cu, cv, pixel_u, pixel_v, x0, y0, K1, K2, K3, P1, 
     W = np.empty((n, 2, 2))
     for i in range(n):
         x, y = (uv[i, 0] - cu) * pixel_u - x0, (uv[i, 1] - cv) * pixel_v - y0
-        r2 = x * x + y * y
-        radial = r2 * (K1 + r2 * (K2 + r2 * K3))
-        xy[i, 0] = x + (x * radial + P1 * (r2 + 2 * x * x) + 2 * P2 * x * y + B1 * x + B2 * y)
-        xy[i, 1] = y + (y * radial + 2 * P1 * x * y + P2 * (r2 + 2 * y * y))
-        g = K1 + r2 * (2 * K2 + 3 * K3 * r2)
-        j00 = (1 + radial + 2 * x * x * g + 6 * P1 * x + 2 * P2 * y + B1) * pixel_u
-        j01 = (2 * x * y * g + 2 * P1 * y + 2 * P2 * x + B2) * pixel_v
-        j10 = (2 * x * y * g + 2 * P1 * y + 2 * P2 * x) * pixel_u
-        j11 = (1 + radial + 2 * y * y * g + 2 * P1 * x + 6 * P2 * y) * pixel_v
+        dx, dy, c00, c01, c10, c11 = correction_point(x, y, K1, K2, K3, P1, P2, B1, B2)
+        xy[i, 0], xy[i, 1] = x + dx, y + dy
+        j00, j01, j10, j11 = c00 * pixel_u, c01 * pixel_v, c10 * pixel_u, c11 * pixel_v
         det = j00 * j11 - j01 * j10
         W[i, 0, 0], W[i, 0, 1], W[i, 1, 0], W[i, 1, 1] = j11 / det, -j01 / det, -j10 / det, j00 / det
     return xy, W
@@ -508,17 +511,9 @@ def correction_kernel(xb, yb, K1, K2, K3, P1, P2, B1, B2, jacobian):
     dx, dy = np.empty(n), np.empty(n)
     J = np.empty((n if jacobian else 0, 2, 2))
     for i in range(n):
-        x, y = xb[i], yb[i]
-        r2 = x * x + y * y
-        radial = r2 * (K1 + r2 * (K2 + r2 * K3))
-        dx[i] = x * radial + P1 * (r2 + 2 * x * x) + 2 * P2 * x * y + B1 * x + B2 * y
-        dy[i] = y * radial + 2 * P1 * x * y + P2 * (r2 + 2 * y * y)
+        dx[i], dy[i], j00, j01, j10, j11 = correction_point(xb[i], yb[i], K1, K2, K3, P1, P2, B1, B2)
         if jacobian:
-            g = K1 + r2 * (2 * K2 + 3 * K3 * r2)
-            J[i, 0, 0] = 1 + radial + 2 * x * x * g + 6 * P1 * x + 2 * P2 * y + B1
-            J[i, 0, 1] = 2 * x * y * g + 2 * P1 * y + 2 * P2 * x + B2
-            J[i, 1, 0] = 2 * x * y * g + 2 * P1 * y + 2 * P2 * x
-            J[i, 1, 1] = 1 + radial + 2 * y * y * g + 2 * P1 * x + 6 * P2 * y
+            J[i, 0, 0], J[i, 0, 1], J[i, 1, 0], J[i, 1, 1] = j00, j01, j10, j11
     return dx, dy, J
 
 

@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from service.core._kernels.geometry_kernels import (
     correction_kernel,
+    correction_point,
     eccentricity_kernel,
     flange_kernel,
     is_rigid_kernel,
@@ -88,6 +89,18 @@ def test_correction_and_its_jacobian_equal_the_formula_and_its_complex_step_deri
         np.testing.assert_allclose(J, _ideal_jacobian(xb, yb, k), rtol=0, atol=1e-14)
         assert J.shape == (len(xb), 2, 2)
         assert correction_kernel(xb, yb, *k, False)[2].shape == (0, 2, 2)  # no Jacobian asked for
+
+
+@pytest.mark.parametrize("kind", sorted(COEFFICIENTS))
+def test_the_one_point_correction_is_the_reference_polynomial_and_its_jacobian(rng, kind):
+    k = COEFFICIENTS[kind]
+    xy = _sensor_points(rng, 40)
+    dx_ref, dy_ref = _correction(xy[:, 0], xy[:, 1], *k)
+    J_ref = _ideal_jacobian(xy[:, 0], xy[:, 1], k)
+    for i, (x, y) in enumerate(xy):
+        dx, dy, j00, j01, j10, j11 = correction_point(float(x), float(y), *k)
+        assert abs(dx - dx_ref[i]) < 1e-15 and abs(dy - dy_ref[i]) < 1e-15
+        np.testing.assert_allclose([[j00, j01], [j10, j11]], J_ref[i], rtol=0, atol=1e-14)
 
 
 def test_correction_propagates_nan():
