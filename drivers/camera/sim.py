@@ -30,8 +30,10 @@ asked for and checked again before and after it is taken: a move commanded after
 asked for (the hand-eye session moving the arm) has it rendered again, so it may come late
 (stamped with its scheduled arrival all the same). ``Frame.exposure_us`` is the exposure a frame
 was rendered with, and its brightness follows it. A frame's noise comes from ``(seed, its exposure
-start)``: the same image whichever process renders it. Until the child is ready (1-2 s after
-``open()``), if it cannot start, or with ``render="inline"``, frames render in this process.
+start)``: the same image whichever process renders it. ``open()`` returns once the child is ready
+(1-2 s; the camera boots, as a GigE camera's open takes seconds), so that no frame of the stream is
+rendered more slowly than the rate and skipped; if the child is not ready within ``OPEN_WAIT_S``,
+if it cannot start, or with ``render="inline"``, frames render in this process.
 
 What it does not model: motion blur within the exposure, rolling shutter, packet loss, buffer
 underruns, and how long rendering takes (a frame is handed over no earlier than its scheduled
@@ -70,6 +72,7 @@ _BIT_DEPTH = {"Mono8": 8, "Mono12": 12, "Mono16": 16}
 REFERENCE_EXPOSURE_US = 2000.0  # the exposure at which RenderSettings.target_dn is reached
 AHEAD_FRAMES = 3  # free run: frames asked of the render process at once (the next one and two more)
 STALE_NS = 500_000_000  # a frame due longer ago than this is dropped (the driver's buffers, ~10 frames at 20 Hz)
+OPEN_WAIT_S = 15.0  # open() waits this long at most for the render child (a fresh install compiles it)
 RENDER_MARGIN = 1.5  # a frame is asked for when it can be rendered in this many render times before it is due
 
 
@@ -173,7 +176,10 @@ class SimCamera:
             raise DriverInitError(f"simulated camera {self._serial} is unplugged")
         if not self._open:
             self._plan.clear()  # tickets of a closed renderer
-            self._renderer.start()  # returns at once: frames are rendered here until its process is ready
+            self._renderer.start()
+            # rendered here meanwhile, frames would take longer than the period: the stream would
+            # start with gaps in seq; a child that does not come leaves rendering here
+            self._renderer.wait_ready(OPEN_WAIT_S)
         self._open = True
 
     def configure(self, settings: CameraSettings) -> None:

@@ -4,7 +4,9 @@ It opens the camera (and keeps re-opening it while it is gone), applies the
 settings, and fetches frames into a one-frame slot: the processing worker
 always takes the newest frame, and a frame it had no time for is counted as
 dropped, never queued (a slow consumer must not build a backlog). Commands from
-other threads (software trigger, new settings) run here between fetches.
+other threads (software trigger, new settings) run here between fetches. Given a
+``stream_when`` event (the worker's "processing is ready"), it connects at once but
+fetches only once it is set: frames nobody can measure yet are not counted as dropped.
 """
 
 from __future__ import annotations
@@ -126,6 +128,7 @@ class CameraChannel:
         settings: CameraSettings,
         wakeup: threading.Condition,
         on_event: Callable[[str, str, str], None],
+        stream_when: threading.Event | None = None,
     ) -> None:
         self.name = name
         self.driver = driver
@@ -138,6 +141,7 @@ class CameraChannel:
         self._on_event = on_event  # (level, kind, message)
         self._commands: queue.Queue[tuple[str, Any, threading.Event | None]] = queue.Queue()
         self._stop = threading.Event()
+        self._stream_when = stream_when
         self._thread = threading.Thread(target=self._run, name=f"camera-{name}", daemon=True)
         self._last_seq: int | None = None
         self._connected_ns = time.monotonic_ns()
@@ -237,6 +241,10 @@ class CameraChannel:
                     continue
                 retry_s = RETRY_MIN_S
             self._run_commands()
+            if self._stream_when is not None and not self._stream_when.is_set():
+                self._stream_when.wait(0.05)
+                self._connected_ns = time.monotonic_ns()  # not stalled: no frame was asked for yet
+                continue
             try:
                 frame = self.driver.fetch(FETCH_TIMEOUT_S)
             except DriverTimeout:

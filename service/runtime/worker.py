@@ -127,10 +127,15 @@ class Worker:
         self._last_stored_ns = 0
         self._threads: list[threading.Thread] = []
         self.started_ns = time.monotonic_ns()
-        self.processing_ready = False
+        self._processing_ready = threading.Event()  # the cameras fetch from then on
         self.rig = RigCombiner([c.name for c in settings.cameras], settings.processing.rig_sync_tolerance_s)
         self.handeye_session: Any = None  # service.runtime.handeye_session.HandEyeSession while one runs
         self.solver = SolverProcess()  # the API's long solves; its child starts with the first session or solve
+
+    @property
+    def processing_ready(self) -> bool:
+        """True once the measurers are built (the compiled kernels loaded)."""
+        return self._processing_ready.is_set()
 
     # --- lifecycle -----------------------------------------------------------------------------
 
@@ -181,7 +186,7 @@ class Worker:
             self.processors[cfg.name] = CameraProcessor(cfg.name, self.settings, self.calibration)
             self.processors[cfg.name].failed_reason = str(e)
             return
-        ch = CameraChannel(cfg.name, driver, cfg.camera_settings(), self._wakeup, self.event)
+        ch = CameraChannel(cfg.name, driver, cfg.camera_settings(), self._wakeup, self.event, self._processing_ready)
         self.cameras[cfg.name] = ch
         self._set_exposure_control(cfg)
         self.processors[cfg.name] = CameraProcessor(cfg.name, self.settings, self.calibration)
@@ -420,7 +425,7 @@ class Worker:
                 proc.warm_up()
             except Exception:
                 log.exception("preparing the measurer of camera %s", proc.name)
-        self.processing_ready = True
+        self._processing_ready.set()
         self.event("info", "processing_ready", "processing is ready")
         # frames handed to the measurement (child processes), oldest first: while one is measured
         # the next waits in its child's pipe, and each is finished here (flange, storage, fan-out)
