@@ -52,7 +52,7 @@ REST_TIMEOUT_S = 10.0
 RETRIES = 3  # a failed frame of a sample is tried again this often
 RETRY_WAIT_S = 0.3
 FRAME_TIMEOUT_S = 5.0
-JOINT_SPEED_DEG_S = 90.0  # the simulated arm's joint moves
+JOINT_SPEED_DEG_S = 120.0  # the simulated arm's joint moves (a UR10e's base and shoulder limit; a KR15's is 156)
 MIN_POSES = 12  # 6 equations a pose, ~30 parameters, twice as many equations as parameters, and a margin
 
 

@@ -111,11 +111,11 @@ def test_recording_the_cells_own_circle_segments_it_from_the_reported_motion(cel
     assert abs(report["G_ccw_mm"] - truth["G_ccw_mm"]) < bound
 
 
-@pytest.mark.slow  # ~30 s: the approach, one lap (12.6 s) each way at 75 mm/s, the analysis
+@pytest.mark.slow  # ~17 s: the approach, one lap (6.3 s) each way at 150 mm/s, the analysis
 def test_circle_program_gives_the_figures_of_the_arms_true_path(cell, tmp_path):
     _ready(cell)
     with cell.client() as c:
-        r = c.post("/tests/circle", json={"radius_mm": 150, "speed_mm_s": 75, "laps": 1})
+        r = c.post("/tests/circle", json={"radius_mm": 150, "speed_mm_s": 150, "laps": 1})
         assert r.status_code == 202, r.text
         test_id = r.json()["id"]
         t, seen = _wait_done(c, test_id, timeout_s=90)
