@@ -7,6 +7,9 @@ where a test needs one.
 from __future__ import annotations
 
 import inspect
+import json
+import subprocess
+import sys
 from typing import Any
 
 import pytest
@@ -169,3 +172,23 @@ def test_the_command_lines_detector_options_are_the_processing_sections_with_its
     if argv[0] == "measure":
         for name in ("sigma_px", "max_sigma0_px"):
             assert args[name] in (None, getattr(processing, name)), name
+
+
+def test_the_processor_warm_up_loads_the_compiled_calls_this_process_makes_whichever_process_measures(tmp_path):
+    # in a fresh interpreter: in this one another test may have loaded them already. Loaded at their
+    # first call instead, the pairing's and the flange's kernels cost the first frame ~50-330 ms
+    code = f"""
+from service.core._kernels import geometry_kernels as g
+from service.runtime.processor import CameraProcessor
+from service.runtime.worker import Worker
+from service.settings import load_settings
+settings = load_settings(None, state_dir={str(tmp_path)!r}, robot__driver="none", cameras=[{{"driver": "v4l2"}}])
+w = Worker(settings)
+before = [len(k.signatures) for k in (g.pose_at_kernel, g.flange_kernel)]
+CameraProcessor("cam0", w.settings, w.calibration).warm_up()
+print(before, [len(k.signatures) for k in (g.pose_at_kernel, g.flange_kernel)])
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    before, after = (json.loads(part) for part in out.stdout.strip().replace("] [", "]|[").split("|"))
+    assert before == [0, 0] and min(after) >= 1, out.stdout

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from drivers.base import Frame, RobotDriver
+from service.core._kernels import geometry_kernels
 from service.core.measurement import Flange, Measurement
 from service.core.pose.timesync import TimeOffsetFit, estimate_time_offset_s
 from service.core.results import Failure, PoseResult, Reason
@@ -96,7 +97,11 @@ class CameraProcessor:
         self.pairer.camera_clock.reset()  # a new exposure or frame rate changes the arrival pattern
 
     def warm_up(self) -> None:
-        """Build the measurer now (loads or compiles the numba kernels; starts the child process)."""
+        """Build the measurer now (loads or compiles the numba kernels; starts the child process).
+
+        The pairing's and the flange's compiled calls run here, in this process, whichever process
+        measures: loaded at their first call they cost the first frame ~50-330 ms."""
+        geometry_kernels.warm_up()
         self._current_measurer()
 
     def close(self) -> None:
