@@ -85,6 +85,27 @@ def test_without_loop_the_replay_ends_after_the_last_frame(folder):
         cam.close()
 
 
+def test_a_bounce_plays_forward_then_back_and_its_device_time_runs_on_by_the_recorded_intervals(folder):
+    stamps = [1_000_000_000, 1_010_000_000, 1_030_000_000]  # intervals of 10 and 20 ms
+    rows = "".join(f"frame_{k:04d}.png,{t}\n" for k, t in enumerate(stamps))
+    (folder / "timestamps.csv").write_text("file,t_ns\n" + rows)
+    files = sorted(folder.glob("*.png"))
+    cam = opened(folder, loop="bounce")
+    try:
+        frames = [cam.fetch(timeout_s=1.0) for _ in range(9)]
+    finally:
+        cam.close()
+    # no jump from the last frame to the first: the motion of a recording stays continuous
+    assert [f.meta["replay_index"] for f in frames] == [0, 1, 2, 1, 0, 1, 2, 1, 0]
+    for f in frames:
+        np.testing.assert_array_equal(f.image, cv2.imread(str(files[f.meta["replay_index"]]), cv2.IMREAD_UNCHANGED))
+    steps_ms = np.diff([f.t_device_ns for f in frames]) / 1e6
+    assert steps_ms.tolist() == [10, 20, 20, 10, 10, 20, 20, 10]
+    assert [f.seq for f in frames] == list(range(9))
+    with pytest.raises(ValueError, match='"bounce"'):
+        make_camera("replay", source=str(folder), loop="pingpong")
+
+
 def test_timestamps_file_gives_the_device_times_and_they_keep_increasing_over_loops(folder):
     # recorded at ~100 Hz with a jitter, replayed at 200 Hz
     stamps = [1_000_000_000, 1_010_000_100, 1_019_999_900]
