@@ -226,27 +226,33 @@ def test_registry_makes_a_ur_robot_driver_and_refuses_another_port():
         URRobot("127.0.0.9", port=30005)
 
 
-# 125 Hz is the requirement; at 500 Hz a loaded 2-core machine (the stand-in shares this process) loses
-# a few packages, and ur_rtde keeps only the newest, so the lower band is looser there.
+# The driver is judged against what the stand-in sent in the same second: the stand-in shares this
+# process, and on a loaded 2-core machine it skips controller ticks (the last CI run sent ~325 of 500).
+# ur_rtde keeps only the newest package, so at 500 Hz the driver's own band is looser.
 @pytest.mark.parametrize(
     ("host", "frequency_hz", "min_fraction"), [("127.0.0.2", 125.0, 0.8), ("127.0.0.3", 500.0, 0.7)]
 )
 def test_ur_rtde_reads_the_standin_at_the_asked_rate_with_matching_poses(host, frequency_hz, min_fraction):
     arm = DemoArm()
-    with _standin(host, arm), _opened(URRobot(host, frequency_hz=frequency_hz)) as robot:
+    with _standin(host, arm) as server, _opened(URRobot(host, frequency_hz=frequency_hz)) as robot:
         time.sleep(0.2)
-        t0 = time.monotonic_ns()
+        t0, sent0 = time.monotonic_ns(), server.packages_sent
         time.sleep(1.0)
-        t1 = time.monotonic_ns()
+        t1, sent1 = time.monotonic_ns(), server.packages_sent
         samples = robot.samples_between(t0, t1)
-        rate_hz = len(samples) / ((t1 - t0) * 1e-9)
-        assert min_fraction * frequency_hz <= rate_hz <= 1.1 * frequency_hz, f"{rate_hz:.1f} Hz"
+        window_s = (t1 - t0) * 1e-9
+        rate_hz, sent_hz = len(samples) / window_s, (sent1 - sent0) / window_s
+        assert sent_hz >= 0.5 * frequency_hz, f"the stand-in sent only {sent_hz:.1f} Hz: the machine is starved"
+        assert min_fraction * sent_hz <= rate_hz <= 1.1 * frequency_hz, f"{rate_hz:.1f} of {sent_hz:.1f} Hz"
 
         t_robot_s = np.array([s.t_robot_s for s in samples])
         t_host, t_robot_hist, T_hist = robot.history.arrays_between(t0, t1)  # what the pairing reads
         np.testing.assert_array_equal(t_robot_hist, t_robot_s)
         assert T_hist.shape == (len(samples), 4, 4)
-        assert np.median(np.diff(t_robot_s)) == pytest.approx(1.0 / frequency_hz, rel=1e-6)
+        # Packages come on controller ticks; asked for this rate, most are one period of it apart.
+        ticks = np.diff(t_robot_s) * server.base_rate_hz
+        np.testing.assert_allclose(ticks, np.round(ticks), atol=1e-6)
+        assert np.bincount(np.round(ticks).astype(int)).argmax() == round(server.base_rate_hz / frequency_hz)
         assert np.all(np.diff([s.t_host_ns for s in samples]) > 0)
         for s in samples[::10]:
             dp_mm, dr_deg = pose_difference(s.T_base_flange, arm.T_base_flange(s.t_robot_s))
