@@ -59,7 +59,7 @@ link_gi() {
 setup() {
     install_apt
     install_venv
-    # the first use of the numba kernels compiles them (~2 min on one core); two at a time here,
+    # the first use of the numba kernels compiles them (~2.7 min on one core); two at a time here,
     # cached for every later process (a second when nothing changed)
     "$venv/bin/python" -m service.pipeline.compile
 }

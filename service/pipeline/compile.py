@@ -1,8 +1,8 @@
 """Compile the measurement's numba kernels ahead of their first use, two at a time.
 
-On a fresh machine the kernels compile when first called: ~2 min on one core of the project's VM
-(detection with the contour tracer ~55 s, geometry and resection 48 s, the ring reader 13 s, the
-simulation's renderer 8 s). numba caches them beside
+On a fresh machine the kernels compile when first called: ~2.7 min on one core of the project's VM
+for 8- and 16-bit frames, writeable and read-only (a replayed frame is read-only and numba compiles
+once per argument type; the ring reader for each image type ~10 s). numba caches them beside
 their modules (``cache=True``) and every later process loads them in well under a second.
 ``python -m service.pipeline.compile`` compiles them in two processes at once, so the first start
 of the service or of the tests waits about half as long; ``deploy/dev.sh`` runs it after installing.

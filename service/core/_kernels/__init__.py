@@ -4,3 +4,21 @@ Every kernel is compiled with ``nogil=True``: the service measures in one thread
 acquire, encode and send; a kernel that kept the interpreter's lock held them all (a fifth of the
 lock's time at 500 frames/s was the ROI windows' kernel alone).
 """
+
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+def warm_images(dtypes: tuple[type, ...], shape: tuple[int, int] = (32, 32)) -> Iterator[NDArray[Any]]:
+    """A zero image of each dtype, writeable and read-only, for the warm-ups: numba compiles a kernel
+    once per argument type and a read-only array is another type (a replayed or memory-mapped frame
+    is read-only; without it, its first frame compiled the reader and the noise kernels, ~15 s)."""
+    for dtype in dtypes:
+        img: NDArray[Any] = np.zeros(shape, dtype=dtype)
+        frozen = img.view()
+        frozen.flags.writeable = False
+        yield img
+        yield frozen

@@ -21,7 +21,7 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 
-from service.core._kernels import contour_kernel, crowd_kernel, noise_kernel
+from service.core._kernels import contour_kernel, crowd_kernel, noise_kernel, warm_images
 
 # rows of the float output
 UV, ELLIPSE, FLUX, LEVEL, PEAK, BACKGROUND, SB2, K_SHOT, VAR_BASE, VAR_PER_K = 0, 0, 5, 6, 7, 8, 9, 10, 11, 12
@@ -439,17 +439,20 @@ def assess_kernel(out, n_sat, edge, usable, contrast, limits, codes):
 
 @lru_cache(maxsize=1)  # once per process
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the kernels for 8-bit images, the image and the masked
-    buffer paths, so that no frame pays for it. Cheap after the first call in a process."""
-    img = np.zeros((32, 32), dtype=np.uint8)
-    img[13:19, 13:19] = 200
+    """Compile (or load from numba's cache) the kernels for 8- and 16-bit images, writeable or not,
+    the image and the masked buffer paths, so that no frame pays for it (a Mono12/16 camera's first
+    frame waited ~13 s for its own). Cheap after the first call in a process."""
     c, half = np.array([16, 16], dtype=np.intp), np.array([6, 6], dtype=np.intp)
     placed = np.ones(2, dtype=np.bool_)
-    buf = img[10:23, 10:23].astype(np.float32).ravel()
     seg = np.full(2, 10.0)
-    out, n_sat, edge = measure_windows_kernel(
-        img, c, c, half, placed, seg, 255.0, buf, np.array([-1, 0], dtype=np.intp)
-    )
+    own = np.array([[0.0, 0.0, 0.1, 0.0, 0.1], [np.nan] * 5])
+    for img in warm_images((np.uint8, np.uint16)):
+        full = float(np.iinfo(img.dtype).max)
+        buf = np.full(13 * 13, 200.0, dtype=np.float32)
+        out, n_sat, edge = measure_windows_kernel(
+            img, c, c, half, placed, seg, full, buf, np.array([-1, 0], dtype=np.intp)
+        )
+        crowd_kernel.mask_windows_kernel(img, c, c, half, np.array([0], dtype=np.intp), own, seg)
     limits = np.array([6, 5000, 4, 0.6, 2, 2.5, 0.4, 3, 4, 0.015, 0.05, 1.3, 2.5])
     assess_kernel(out, n_sat, edge, placed, 2 * seg, limits, np.arange(5, dtype=np.intp))
     contour_kernel.warm_up()
@@ -472,5 +475,3 @@ def warm_up() -> None:
         16,
         16,
     )
-    own = np.array([[0.0, 0.0, 0.1, 0.0, 0.1], [np.nan] * 5])
-    crowd_kernel.mask_windows_kernel(img, c, c, half, np.array([0], dtype=np.intp), own, seg)

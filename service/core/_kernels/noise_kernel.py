@@ -24,6 +24,8 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 
+from service.core._kernels import warm_images
+
 #: 1 / (2 Phi^-1(3/4)): a normal distribution's interquartile range is this many times its sigma
 IQR_TO_SIGMA = 0.7413011092528009
 CLIP_SIGMA = 3.5  # the second round keeps the residuals within this many first-round sigmas
@@ -139,8 +141,7 @@ def box_peak_kernel(img, box, which):
 
 @lru_cache(maxsize=1)  # once per process
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the kernels for 8- and 16-bit images."""
-    for dtype in (np.uint8, np.uint16):
-        img = np.zeros((32, 32), dtype=dtype)
+    """Compile (or load from numba's cache) the kernels for 8- and 16-bit images, writeable or not."""
+    for img in warm_images((np.uint8, np.uint16)):
         tile_noise_kernel(img, np.zeros((4, 4), dtype=np.float32), 8, 16, 4, 0, 8)
         box_peak_kernel(img, np.array([[0, 0, 3, 3]], dtype=np.intp), np.array([0], dtype=np.intp))

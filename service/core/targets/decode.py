@@ -80,7 +80,7 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service.core._kernels import decode_kernel
+from service.core._kernels import decode_kernel, warm_images
 from service.core.targets.codes import POSECELL12, CodeFamily, family_word_table
 
 Array = NDArray[np.float64]
@@ -379,8 +379,11 @@ def read_code(
 
 @lru_cache(maxsize=1)  # once per process
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the reader's kernel for 8-bit images, so that no
-    frame pays for it. Cheap after the first call in a process."""
-    image = np.zeros((48, 48), dtype=np.uint8)
-    image[20:28, 20:28] = 200
-    read_codes(image, [(23.5, 23.5, 4.0, 4.0, 0.0)])
+    """Compile (or load from numba's cache) the reader's kernel for 8-bit, 16-bit and float images,
+    writeable or not, with the background measured and given, so that no frame pays for it (each
+    type ~10 s on one core). Cheap after the first call in a process."""
+    for image in warm_images((np.uint8, np.uint16, np.float32), (48, 48)):
+        if image.flags.writeable:  # its read-only view, next, shares the disk
+            image[20:28, 20:28] = 200
+        read_codes(image, [(23.5, 23.5, 4.0, 4.0, 0.0)])
+        read_codes(image, [(23.5, 23.5, 4.0, 4.0, 0.0)], background_dn=[10.0])
