@@ -21,6 +21,7 @@ from api.deps import WorkerDep
 from api.errors import ApiError
 from api.security import Authorized
 from service.core.results import Reason, SolveError
+from service.runtime.arm import ARRIVAL_MARGIN_S, ArmBusy
 from service.runtime.handeye_session import HandEyeSession, SessionError
 from service.runtime.solver_process import SolverCrashed
 from service.store.formats import FormatError
@@ -85,9 +86,17 @@ def move(index: int, worker: WorkerDep) -> dict[str, Any]:
             status=409,
         )
     try:
+        arm = worker.arm.claim(f"the hand-eye session's move to proposal #{index}")
+    except ArmBusy as e:
+        raise ApiError(Reason.busy, str(e), status=409) from None
+    duration_s = 0.0
+    try:
         duration_s = move_to(s.proposals[index])
     except SolveError as e:
         raise ApiError(str(e.reason), f"proposal #{index} is not reachable: {e.message}", status=422) from None
+    finally:
+        # the move is not waited for here: the claim ends when the arm has arrived (it starts in 0.05 s)
+        worker.arm.release(arm, after_s=duration_s + ARRIVAL_MARGIN_S if duration_s > 0 else 0.0)
     return {"ok": True, "index": index, "duration_s": round(duration_s, 3)}
 
 

@@ -54,6 +54,7 @@ from service.runtime.accuracy_plans import (
     measured_flange_sigma,
     table1_stops,
 )
+from service.runtime.arm import ArmBusy
 from service.sim.robot import JointTrajectory
 from service.store.measurements import StorageError
 from service.store.tests_store import INTERRUPTED, TestStore
@@ -104,6 +105,7 @@ class _Run:
     last_flush_ns: int = 0
     centre_mm: list[float] | None = None  # the circle's nominal centre, base mm
     thread: threading.Thread | None = None
+    arm: Any = None  # its claim of the simulated arm (program mode)
 
     def on_result(self, m: Measurement) -> None:  # the processing thread: never blocks
         try:
@@ -163,8 +165,19 @@ class AccuracyTests:
                 raise TestError(
                     Reason.busy, f"test {self._active.id} ({self._active.kind}) is running; stop it or wait for it"
                 )
-            test_id = self.store.create(kind, params.mode, {**params.model_dump(), "camera": camera})
-            run = _Run(test_id, kind, params, camera)
+            arm = None
+            if params.mode == "program":
+                try:
+                    arm = self.worker.arm.claim(f"the {kind} accuracy test")
+                except ArmBusy as e:
+                    raise TestError(Reason.busy, str(e)) from None
+            try:
+                test_id = self.store.create(kind, params.mode, {**params.model_dump(), "camera": camera})
+            except BaseException:
+                if arm is not None:
+                    self.worker.arm.release(arm)
+                raise
+            run = _Run(test_id, kind, params, camera, arm=arm)
             self._active = run
         run.thread = threading.Thread(target=self._run, args=(run, cell, plan), name=f"test-{test_id}", daemon=True)
         run.thread.start()
@@ -259,6 +272,8 @@ class AccuracyTests:
         finally:
             unsubscribe()
             self.worker.hold_exposure("")
+            if run.arm is not None:
+                self.worker.arm.release(run.arm)  # held still by _hold if it was stopped
         if details is not None:
             details.update(n_dropped=run.n_dropped, n_unusable=run.n_unusable)
         try:

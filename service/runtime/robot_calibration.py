@@ -38,6 +38,7 @@ from service.core.measurement import iso_wall
 from service.core.results import PoseResult, Reason
 from service.core.robot.kinematics import nominal_model
 from service.runtime.accuracy_plans import REST_TOL_DEG, REST_TOL_MM, REST_WINDOW_S, measured_flange_sigma
+from service.runtime.arm import ArmBusy
 from service.runtime.handeye_session import SessionError
 from service.runtime.robot_solve import plan_poses, pose_errors, solve_robot
 from service.runtime.solver_process import SolverCrashed
@@ -416,7 +417,11 @@ class RobotCalibration:
         s = self.get()
         self._exclusive(s)
         try:
-            return self._move(s, k)
+            arm = self._claim_arm(f"the robot calibration's move to pose #{k}")
+            try:
+                return self._move(s, k)
+            finally:
+                self.worker.arm.release(arm)
         finally:
             self._busy.release()
 
@@ -499,13 +504,24 @@ class RobotCalibration:
                 Reason.unsupported, "run is for mode 'program' (the simulated cell); record samples instead"
             )
         self._exclusive(s)
+        try:
+            arm = self._claim_arm("the robot calibration session")
+        except SessionError:
+            self._busy.release()
+            raise
         s.status, s.progress, s.error = "running", 0.0, None
         s.cancel.clear()
-        s.thread = threading.Thread(target=self._run, args=(s,), name="robot-calibration", daemon=True)
+        s.thread = threading.Thread(target=self._run, args=(s, arm), name="robot-calibration", daemon=True)
         s.thread.start()
         return s
 
-    def _run(self, s: RobotSession) -> None:
+    def _claim_arm(self, owner: str) -> Any:
+        try:
+            return self.worker.arm.claim(owner)
+        except ArmBusy as e:
+            raise SessionError(Reason.busy, str(e)) from None
+
+    def _run(self, s: RobotSession, arm: Any) -> None:
         try:
             n = len(s.T_base_flange)
             for k in range(n):
@@ -519,6 +535,7 @@ class RobotCalibration:
                     continue
                 with s.lock:
                     s.samples = [x for x in s.samples if x.pose != k] + [sample]
+            self.worker.arm.release(arm)  # the solve does not move it
             s.status, s.progress, s.message = "solving", n / (n + 1), "identifying the kinematic errors"
             self._solve(s)
             s.status, s.progress, s.message = "solved", 1.0, "solved: save it to use it"
@@ -531,6 +548,7 @@ class RobotCalibration:
             log.exception("robot calibration run")
             s.status, s.error, s.message = "failed", f"internal error: {e!r}", "failed"
         finally:
+            self.worker.arm.release(arm)
             self._busy.release()
 
     # --- verification --------------------------------------------------------------------------------
@@ -572,9 +590,13 @@ class RobotCalibration:
             if p.mode == "record":
                 samples.append((None, capture(w, camera, p.frames_per_pose)))
             else:
-                for k in picks:
-                    move_joints(w, stored[int(k)])
-                    samples.append((int(k), capture(w, camera, p.frames_per_pose)))
+                arm = self._claim_arm("the robot model's verification")
+                try:
+                    for k in picks:
+                        move_joints(w, stored[int(k)])
+                        samples.append((int(k), capture(w, camera, p.frames_per_pose)))
+                finally:
+                    w.arm.release(arm)
         finally:
             self._busy.release()
         q = np.array([x.q_rad for _, x in samples])

@@ -44,6 +44,7 @@ from drivers.registry import make_camera, make_robot
 from service.core.measurement import Measurement
 from service.core.results import Failure, Reason
 from service.runtime.acquisition import CameraChannel, DeviceState, Wakeup
+from service.runtime.arm import ArmLease
 from service.runtime.calibration_state import CalibrationState
 from service.runtime.cell_runtime import CellRuntime, with_stated_latencies
 from service.runtime.exposure import ExposureControl, ExposureLimits
@@ -98,6 +99,7 @@ class Worker:
         self.cameras: dict[str, CameraChannel] = {}
         self.processors: dict[str, CameraProcessor] = {}
         self.exposure: dict[str, ExposureControl] = {}  # per camera with automatic exposure
+        self.arm = ArmLease()  # the workflow moving the simulated arm now (one at a time)
         self.exposure_hold = ""  # why the exposure control holds still (an accuracy test runs), or ""
         self.robot: RobotDriver | None = None
         self.robot_state = DeviceState.absent if settings.robot.driver == "none" else DeviceState.starting
@@ -637,7 +639,11 @@ class Worker:
         for name, proc in self.processors.items():
             if name not in cams:
                 cams[name] = {"state": str(DeviceState.failed), "error": proc.failed_reason}
-        robot: dict[str, Any] = {"state": str(self.robot_state), "error": self.robot_error}
+        robot: dict[str, Any] = {
+            "state": str(self.robot_state),
+            "error": self.robot_error,
+            "moved_by": self.arm.moved_by,
+        }
         if self.robot is not None:
             robot.update(driver=self.robot.info.driver, rate_hz=self.robot.info.rate_hz)
         states = [c["state"] for c in cams.values()]

@@ -195,3 +195,46 @@ def httpx_client(live):
     c = live.client()
     c.timeout = 60.0  # verify re-visits poses within its request
     return c
+
+
+def test_one_workflow_moves_the_arm_at_a_time_and_the_others_are_told_which(cell):
+    # two programs played into one controller would each measure the other's motion
+    _ready(cell)
+    with cell.client() as c:
+        r = c.post("/calibration/robot/session", json={"n_poses": 12, "n_holdout": 0, "seed": 2})
+        assert r.status_code == 200, r.text
+        assert c.post("/calibration/handeye/session", json={"n_poses": 4}).status_code == 200
+        assert c.post("/calibration/robot/session/run").status_code == 202
+        try:
+            assert c.get("/health").json()["robot"]["moved_by"] == "the robot calibration session"
+            for path in ("/tests/table1", "/calibration/handeye/session/move/0"):
+                r = c.post(path, json={}) if path.startswith("/tests") else c.post(path)
+                assert r.status_code == 409 and r.json()["reason"] == "busy", (path, r.text)
+                assert r.json()["message"].startswith("the arm is being moved by the robot calibration session")
+        finally:
+            assert c.delete("/calibration/robot/session").status_code == 200  # cancels the run
+        assert c.get("/health").json()["robot"]["moved_by"] is None
+        # now an accuracy test holds it: the calibration's own move and the hand-eye move are refused
+        r = c.post("/tests/iso9283", json={"cycles": 2})
+        assert r.status_code == 202, r.text
+        test_id = r.json()["id"]
+        try:
+            assert c.post("/calibration/robot/session", json={"n_poses": 12, "n_holdout": 0}).status_code == 200
+            for path in ("/calibration/robot/session/move/0", "/calibration/handeye/session/move/1"):
+                r = c.post(path)
+                assert r.status_code == 409 and r.json()["reason"] == "busy", (path, r.text)
+                assert r.json()["message"].startswith("the arm is being moved by the iso9283 accuracy test")
+        finally:
+            r = c.post(f"/tests/{test_id}/stop")
+            assert r.status_code == 200 and r.json()["status"] == "cancelled", r.text
+            assert c.delete("/calibration/robot/session").status_code == 200
+            assert c.delete("/calibration/handeye/session").status_code == 200
+        assert c.get("/health").json()["robot"]["moved_by"] is None
+        # free again: a move goes through (and its lease ends when the arm has arrived)
+        assert c.post("/calibration/handeye/session", json={"n_poses": 4}).status_code == 200
+        r = c.post("/calibration/handeye/session/move/0")
+        assert r.status_code == 200, r.text
+        assert c.get("/health").json()["robot"]["moved_by"] == "the hand-eye session's move to proposal #0"
+        time.sleep(r.json()["duration_s"] + 0.3)
+        assert c.get("/health").json()["robot"]["moved_by"] is None
+        assert c.delete("/calibration/handeye/session").status_code == 200
