@@ -1,4 +1,4 @@
-"""The dashboard's accuracy-tests panel in a real headless Chromium against the simulated cell.
+"""The dashboard's accuracy-tests panel and robot model card in a real headless Chromium against the simulated cell.
 
 A user picks a test, types its parameters, starts it (refused without the API token, with the
 service's reason), watches its progress, and reads the finished test's report in the page.
@@ -99,3 +99,47 @@ def test_a_table1_test_runs_from_the_panel_with_progress_and_its_report(page: Pa
     assert page.exceptions == []
     urls = page.js("performance.getEntriesByType('resource').map(e => e.name)")
     assert [u for u in urls if not u.startswith((cell.url + "/", "blob:", "data:"))] == []
+
+
+@pytest.mark.slow  # ~30 s: 14 poses visited and measured, the solve, 4 poses re-visited
+def test_the_robot_model_card_plans_runs_saves_and_verifies_a_calibration(page: Page, cell: LiveServer) -> None:
+    page.type("#token", TOKEN)
+    page.wait("document.getElementById('rc-plan-text').textContent.startsWith('No session')", "the empty card")
+    page.type("#rc-poses", "12")
+    page.type("#rc-holdout", "2")
+    page.click("#rc-plan")
+    page.wait("document.getElementById('rc-active').dataset.state === 'planned'", "the plan", 60)
+    with cell.client() as c:
+        planned = c.get("/calibration/robot/session").json()
+    assert planned["n_poses"] == 12 and planned["n_holdout"] == 2
+    assert f"condition {planned['observability']['condition']}" in page.text("#rc-plan-text")
+    assert page.js("document.getElementById('rc-save').disabled")  # nothing solved yet
+
+    page.click("#rc-run")
+    page.wait("document.getElementById('rc-active').dataset.state === 'running'", "the run", 10)
+    page.wait("document.getElementById('rc-progress').value > 0", "progress above 0", 30)
+    assert "pose" in page.text("#rc-progress-text")
+    page.wait("document.getElementById('rc-active').dataset.state === 'solved'", "the solve", 150)
+    with cell.client() as c:
+        result = c.get("/calibration/robot/session").json()["result"]
+    before, after = result["holdout"]["before"], result["holdout"]["after"]
+    shown = page.text("#rc-result")
+    assert f"{before['position_mean_mm']:.3f} mm → {after['position_mean_mm']:.4f} mm mean" in shown, shown
+
+    page.click("#rc-save")
+    with cell.client() as c:
+        page.wait("document.getElementById('rc-stored').textContent.includes('version')", "the stored model", 15)
+        version = c.get("/calibration").json()["robot"]["version"]
+    page.wait(f"document.getElementById('rc-stored').textContent.includes('version {version} ')", "its version", 10)
+
+    page.click("#rc-verify")
+    page.wait("['ok', 'drifted'].includes(document.getElementById('rc-verify-text').dataset.verdict)", "the check", 60)
+    verdict = page.js("document.getElementById('rc-verify-text').dataset.verdict")
+    assert page.text("#rc-verify-text").startswith(
+        f"Verification of model version {version}: {verdict} — drift at most"
+    )
+
+    page.click("#rc-discard")
+    page.wait("document.getElementById('rc-plan-text').textContent.startsWith('No session')", "the discarded session")
+    assert page.js("document.getElementById('rc-failure').hidden")
+    assert page.exceptions == []
