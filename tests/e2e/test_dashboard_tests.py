@@ -1,7 +1,9 @@
-"""The dashboard's accuracy-tests panel and robot model card in a real headless Chromium against the simulated cell.
+"""The dashboard's accuracy-tests panel and calibration cards in a real headless Chromium against the simulated cell.
 
 A user picks a test, types its parameters, starts it (refused without the API token, with the
-service's reason), watches its progress, and reads the finished test's report in the page.
+service's reason), watches its progress, and reads the finished test's report in the page; runs
+the hand-eye calibration (proposals visited with the simulated arm, samples recorded, solved and
+applied) and the robot calibration (planned, run, saved, verified) from their cards.
 """
 
 from __future__ import annotations
@@ -142,4 +144,40 @@ def test_the_robot_model_card_plans_runs_saves_and_verifies_a_calibration(page: 
     page.click("#rc-discard")
     page.wait("document.getElementById('rc-plan-text').textContent.startsWith('No session')", "the discarded session")
     assert page.js("document.getElementById('rc-failure').hidden")
+    assert page.exceptions == []
+
+
+@pytest.mark.slow  # ~20 s: six robot moves of 1-4 s each and a solve in the solver process
+def test_the_hand_eye_card_visits_the_proposals_records_and_applies_the_solution(page: Page, cell: LiveServer) -> None:
+    page.type("#token", TOKEN)
+    page.wait("document.getElementById('he-state').textContent.startsWith('No session')", "the empty card")
+    with cell.client() as c:
+        version_before = c.get("/calibration").json()["handeye"]["version"]
+    page.type("#he-poses", "6")
+    page.click("#he-start")
+    page.wait("document.querySelectorAll('#he-table tbody tr').length === 6", "the six proposals", 30)
+    with cell.client() as c:
+        proposals = c.get("/calibration/handeye/session").json()["proposals"]
+    first = page.js("[...document.querySelectorAll('#he-table tbody tr')[0].cells].map(td => td.textContent)")
+    assert first[1] == ", ".join(f"{v:.1f}" for v in proposals[0]["xyz_mm"]), first
+    assert page.js("document.getElementById('he-solve').disabled")  # no samples yet
+
+    page.click("#he-visit")
+    page.wait("document.getElementById('he-state').textContent.startsWith('visiting proposal')", "the visits", 10)
+    page.wait("!document.getElementById('he-solve').disabled", "the visits to end", 90)
+    with cell.client() as c:
+        n_samples = c.get("/calibration/handeye/session").json()["n_samples"]
+    recorded = page.js("document.querySelectorAll('#he-table tbody tr[data-recorded=\"true\"]').length")
+    assert n_samples >= 3 and recorded == n_samples, (n_samples, recorded)
+    assert f"{n_samples} samples recorded" in page.text("#he-state")
+
+    page.click("#he-solve")
+    page.wait("!document.getElementById('he-result').hidden", "the solution", 60)
+    with cell.client() as c:
+        handeye = c.get("/calibration").json()["handeye"]
+    assert handeye["version"] != version_before
+    assert page.text("#he-result").startswith(f"Applied as hand-eye version {handeye['version']} (")
+
+    page.click("#he-discard")
+    page.wait("document.getElementById('he-state').textContent.startsWith('No session')", "the discarded session")
     assert page.exceptions == []
