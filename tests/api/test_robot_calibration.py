@@ -69,17 +69,17 @@ def test_refusals_say_why(cell):
         assert c.get("/calibration/robot/session").status_code == 404
 
 
-@pytest.mark.slow  # ~40-60 s: 30 poses visited and measured, the solve, compensation, verification
+@pytest.mark.slow  # ~30-45 s: 23 poses visited and measured, the solve, compensation, verification
 def test_session_identifies_the_arm_compensation_reaches_targets_and_verify_finds_no_drift(cell):
     _ready(cell)
     sim = cell.worker.cell.cell
     t0 = time.monotonic()
     with httpx_client(cell) as c:
-        r = c.post("/calibration/robot/session", json={"n_poses": 24, "n_holdout": 6, "seed": 1})
+        r = c.post("/calibration/robot/session", json={"n_poses": 18, "n_holdout": 5, "seed": 1})
         assert r.status_code == 200, r.text
         s = r.json()
-        assert s["status"] == "planned" and len(s["proposals"]) == 30
-        assert sum(p["holdout"] for p in s["proposals"]) == 6
+        assert s["status"] == "planned" and len(s["proposals"]) == 23
+        assert sum(p["holdout"] for p in s["proposals"]) == 5
         ob = s["observability"]
         assert 1.0 < ob["condition"] < 1e3 and ob["n_identifiable"] >= 25
         assert "theta1" in ob["frozen_structural"]  # the base's rotation about z takes it
@@ -99,8 +99,8 @@ def test_session_identifies_the_arm_compensation_reaches_targets_and_verify_find
         result = s["result"]
         t_run = time.monotonic() - t0
         # a pose whose frames all failed (a busy host starving the simulated devices) is skipped, and named
-        assert len(s["skipped"]) <= 2 and s["n_samples"] == 30 - len(s["skipped"]), s["skipped"]
-        assert result["n_calibration"] + result["n_holdout"] == s["n_samples"] and result["n_holdout"] >= 4
+        assert len(s["skipped"]) <= 2 and s["n_samples"] == 23 - len(s["skipped"]), s["skipped"]
+        assert result["n_calibration"] + result["n_holdout"] == s["n_samples"] and result["n_holdout"] >= 3
         assert result["solver_pid"] != os.getpid()  # solved in the child process, not beside the measurement
         before, after = result["holdout"]["before"], result["holdout"]["after"]
         print(
@@ -145,7 +145,7 @@ def test_session_identifies_the_arm_compensation_reaches_targets_and_verify_find
         assert r.status_code == 200, r.text
         version = r.json()["version"]
         stored = c.get("/calibration/robot").json()
-        assert stored["schema_version"] == 2 and len(stored["poses"]) == 30
+        assert stored["schema_version"] == 2 and len(stored["poses"]) == 23
 
         # compensation with the stored model, then the TRUE simulated arm at those joints
         rng = np.random.default_rng(99)
