@@ -1,12 +1,11 @@
-/* posecell dashboard: the hand-eye calibration card (vanilla JS, beside app.js, nothing from outside).
+/* posecell dashboard: the hand-eye calibration card (vanilla JS, the calls are cards.js's, nothing from outside).
  *
  * The guided session over the API: POST /calibration/handeye/session proposes poses around the field,
  * POST …/move/{k} moves the simulated arm to one (a real robot is moved by its own program),
  * POST …/samples records a sample at the robot's resting pose (409 robot_moving while it moves: tried
  * again until it rests), POST …/solve?apply=true solves X and Z and uses them, DELETE discards.
  * "Visit all" does move, wait, record for every proposal in turn, skipping the ones the arm cannot
- * reach (the service says so), as an operator would. The API token is the one typed into the
- * "Triggered measurement" card. Every failure is shown as its `reason` and `message`.
+ * reach (the service says so), as an operator would. Every failure is shown as its `reason` and `message`.
  */
 "use strict";
 
@@ -18,50 +17,9 @@
   const state = { session: null, rows: [], busy: false, simulated: false, timer: null };
   const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
 
-  function headers() {
-    const token = ($("token") && $("token").value.trim()) || "";
-    const h = { "Content-Type": "application/json" };
-    if (token) h.Authorization = `Bearer ${token}`;
-    return h;
-  }
-
-  /** fetch JSON; resolves the body (null for a 404 when `missingOk`) or throws {reason, message, status}. */
-  async function call(url, options = {}, missingOk = false) {
-    let res;
-    try {
-      res = await fetch(url, { cache: "no-store", ...options });
-    } catch (e) {
-      throw { reason: "network_error", message: `the service at ${location.host} does not answer (${e && e.message})` };
-    }
-    const body = await res.text();
-    let data = null;
-    try { data = body ? JSON.parse(body) : null; } catch (_) { data = null; }
-    if (res.status === 404 && missingOk) return null;
-    if (!res.ok) {
-      const reason = data && data.reason ? String(data.reason) : `http_${res.status}`;
-      const message = data && data.reason ? String(data.message || `HTTP ${res.status}`) : body.trim().slice(0, 200);
-      throw { reason, message: message || `HTTP ${res.status}`, status: res.status };
-    }
-    return data;
-  }
-
-  function showFailure(p) {
-    const box = $("he-failure");
-    const reason = document.createElement("span");
-    reason.className = "reason";
-    reason.textContent = p.reason || "error";
-    const message = document.createElement("span");
-    message.textContent = p.message || "no message was given";
-    box.replaceChildren(reason, message);
-    box.dataset.reason = p.reason || "error";
-    box.hidden = false;
-  }
-
-  function clearFailure() {
-    $("he-failure").hidden = true;
-    $("he-failure").dataset.reason = "";
-    $("he-failure").classList.remove("warn");
-  }
+  const { headers, call } = window.posecell;
+  const showFailure = (p) => window.posecell.showFailure($("he-failure"), p);
+  const clearFailure = () => window.posecell.clearFailure($("he-failure"));
 
   const fixed = (values, digits) => values.map((v) => Number(v).toFixed(digits)).join(", ");
 
@@ -189,7 +147,7 @@
         return td;
       };
       const arm = document.createElement("td");
-      if (state.simulated && state.rows[k] !== "recorded") {
+      if (state.simulated && !["recorded", "unreachable"].includes(state.rows[k])) {
         const b = document.createElement("button");
         b.type = "button";
         b.textContent = "Move";

@@ -1,4 +1,4 @@
-/* posecell dashboard: the robot model card (vanilla JS, beside app.js and tests.js, nothing from outside).
+/* posecell dashboard: the robot model card (vanilla JS, the calls are cards.js's, nothing from outside).
  *
  * The robot calibration session over the API: POST /calibration/robot/session plans poses (its
  * observability is shown), POST …/session/run visits, records and solves them in the simulated cell,
@@ -6,8 +6,7 @@
  * it), POST …/session/solve identifies the errors, POST …/session/save stores the model,
  * DELETE …/session discards it; POST /calibration/robot/verify is the shift's check of the stored
  * model. GET …/session every second while the session runs or solves (every 5 s otherwise) keeps
- * the progress and the result current. The API token is the one typed into the "Triggered
- * measurement" card. Every failure is shown as its `reason` and `message`.
+ * the progress and the result current. Every failure is shown as its `reason` and `message`.
  */
 "use strict";
 
@@ -18,48 +17,9 @@
   const $ = (id) => document.getElementById(id);
   const state = { session: null, timer: null, busy: false };
 
-  function headers() {
-    const token = ($("token") && $("token").value.trim()) || "";
-    const h = { "Content-Type": "application/json" };
-    if (token) h.Authorization = `Bearer ${token}`;
-    return h;
-  }
-
-  /** fetch JSON; resolves the body (null for a 404 when `missingOk`) or throws {reason, message}. */
-  async function call(url, options = {}, missingOk = false) {
-    let res;
-    try {
-      res = await fetch(url, { cache: "no-store", ...options });
-    } catch (e) {
-      throw { reason: "network_error", message: `the service at ${location.host} does not answer (${e && e.message})` };
-    }
-    const body = await res.text();
-    let data = null;
-    try { data = body ? JSON.parse(body) : null; } catch (_) { data = null; }
-    if (res.status === 404 && missingOk) return null;
-    if (!res.ok) {
-      if (data && data.reason) throw { reason: String(data.reason), message: String(data.message || `HTTP ${res.status}`) };
-      throw { reason: `http_${res.status}`, message: body.trim().slice(0, 200) || `HTTP ${res.status}` };
-    }
-    return data;
-  }
-
-  function showFailure(p) {
-    const box = $("rc-failure");
-    const reason = document.createElement("span");
-    reason.className = "reason";
-    reason.textContent = p.reason || "error";
-    const message = document.createElement("span");
-    message.textContent = p.message || "no message was given";
-    box.replaceChildren(reason, message);
-    box.dataset.reason = p.reason || "error";
-    box.hidden = false;
-  }
-
-  function clearFailure() {
-    $("rc-failure").hidden = true;
-    $("rc-failure").dataset.reason = "";
-  }
+  const { headers, call } = window.posecell;
+  const showFailure = (p) => window.posecell.showFailure($("rc-failure"), p);
+  const clearFailure = () => window.posecell.clearFailure($("rc-failure"));
 
   const mm = (v, digits = 3) => (v === null || v === undefined ? "–" : `${Number(v).toFixed(digits)} mm`);
   const deg = (v, digits = 4) => (v === null || v === undefined ? "–" : `${Number(v).toFixed(digits)}°`);

@@ -4,7 +4,7 @@
  * bar; POST /tests/{kind} starts one (with the parameters typed as JSON), POST /tests/{id}/stop
  * finishes a recording or cancels a program; a finished test's HTML report (GET /tests/{id}/report,
  * polar plot and tables) is shown in a frame of this page. The API token is the one typed into the
- * "Triggered measurement" card (kept in this browser's localStorage by app.js).
+ * "Triggered measurement" card (kept in this browser's localStorage by app.js); the calls are cards.js's.
  * Every failure is shown as its `reason` and `message`.
  */
 "use strict";
@@ -36,42 +36,9 @@
     return a;
   }
 
-  function headers() {
-    const token = ($("token") && $("token").value.trim()) || "";
-    const h = { "Content-Type": "application/json" };
-    if (token) h.Authorization = `Bearer ${token}`;
-    return h;
-  }
-
-  /** fetch JSON; resolves the body or throws {reason, message} (the service's, or ours). */
-  async function call(url, options = {}) {
-    let res;
-    try {
-      res = await fetch(url, { cache: "no-store", ...options });
-    } catch (e) {
-      throw { reason: "network_error", message: `the service at ${location.host} does not answer (${e && e.message})` };
-    }
-    const body = await res.text();
-    let data = null;
-    try { data = body ? JSON.parse(body) : null; } catch (_) { data = null; }
-    if (!res.ok) {
-      if (data && data.reason) throw { reason: String(data.reason), message: String(data.message || `HTTP ${res.status}`) };
-      throw { reason: `http_${res.status}`, message: body.trim().slice(0, 200) || `HTTP ${res.status}` };
-    }
-    return data;
-  }
-
-  function showFailure(p) {
-    const box = $("test-failure");
-    box.replaceChildren(text("span", p.reason || "error", "reason"), text("span", p.message || "no message was given"));
-    box.dataset.reason = p.reason || "error";
-    box.hidden = false;
-  }
-
-  function clearFailure() {
-    $("test-failure").hidden = true;
-    $("test-failure").dataset.reason = "";
-  }
+  const { headers, call } = window.posecell;
+  const showFailure = (p) => window.posecell.showFailure($("test-failure"), p);
+  const clearFailure = () => window.posecell.clearFailure($("test-failure"));
 
   function fillDefaults() {
     const d = DEFAULTS[$("test-kind").value][$("test-mode").value];
