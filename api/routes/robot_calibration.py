@@ -24,6 +24,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Depends, FastAPI, Query, Request
 from pydantic import ValidationError
 
+from api import plant
 from api.errors import ApiError
 from api.security import Authorized
 from service.core.results import Reason
@@ -33,7 +34,8 @@ from service.runtime.robot_calibration import RobotCalibration
 
 @contextlib.asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-    app.state.robot_calibration = RobotCalibration(app.state.worker)
+    # each verification's outcome goes to the plant beside the accuracy tests' reports (MQTT <prefix>/tests)
+    app.state.robot_calibration = RobotCalibration(app.state.worker, lambda m: plant.publish_test_report(app, m))
     try:
         yield
     finally:

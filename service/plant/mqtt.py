@@ -23,7 +23,8 @@ target list (``Measurement.json_without_targets``, DESIGN section 4), QoS 0, not
 ``<prefix>/health`` the ``/health`` document, QoS 1, retained, every ``health_interval_s`` and at
 once when its status or problems change, with the retained last will ``offline`` (the broker
 publishes it when the connection dies without a goodbye; a clean stop publishes it itself);
-``<prefix>/tests`` accuracy-test reports, QoS 1, not retained.
+``<prefix>/tests`` accuracy-test reports and the robot model's verifications (``kind`` "verify"), QoS 1,
+not retained.
 """
 
 from __future__ import annotations

@@ -26,6 +26,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -322,8 +323,10 @@ class RobotSession:
 class RobotCalibration:
     """The one robot calibration session of ``worker``'s cell, and the verification against the stored model."""
 
-    def __init__(self, worker: Any) -> None:
+    def __init__(self, worker: Any, on_verified: Callable[[dict[str, Any]], None] | None = None) -> None:
         self.worker = worker
+        # told of every verification's outcome (the plant's MQTT <prefix>/tests, beside the accuracy tests)
+        self.on_verified = on_verified
         self.session: RobotSession | None = None
         self._busy = threading.Lock()  # one thing moves the arm or solves at a time
 
@@ -620,7 +623,7 @@ class RobotCalibration:
             f"robot model version {w.calibration.versions.get('robot')} verified: {verdict}, "
             f"drift {drift['position_max_mm']:.3f} mm / {drift['orientation_max_deg']:.4f} deg at most",
         )
-        return {
+        out = {
             "ok": True,
             "verdict": verdict,
             "model_version": w.calibration.versions.get("robot"),
@@ -630,6 +633,14 @@ class RobotCalibration:
             "nominal": {k: v for k, v in nominal_err.items() if not k.startswith("per_pose")},
             "poses": poses,
         }
+        if self.on_verified is not None:
+            message = {"kind": "verify", "status": "done", "mode": p.mode, "t_wall": iso_wall(time.time_ns())}
+            message["report"] = {k: v for k, v in out.items() if k not in ("ok", "poses")}
+            try:
+                self.on_verified(message)
+            except Exception:  # the plant's publisher never fails the check itself
+                log.exception("publishing the verification")
+        return out
 
     def close(self) -> None:
         self.discard()

@@ -12,11 +12,15 @@ import time
 from collections.abc import Iterator
 
 import httpx
+import numpy as np
 import pytest
 
 from api import plant
+from service.core.robot.kinematics import nominal_model
 from service.plant.mqtt import OFFLINE, MqttPublisher
+from service.runtime.robot_solve import PARAMETERISATION
 from service.settings import MqttConfig, load_settings
+from service.store.robot_model import robot_model_to_json
 from tests.api.conftest import LiveServer, free_port, run_server
 from tests.plant.conftest import Broker, Subscriber, a_measurement
 
@@ -146,6 +150,30 @@ def test_an_accuracy_test_that_ends_is_published_on_the_tests_topic(live: LiveSe
     assert msg["status"] in ("failed", "done") and (msg["status"] == "done" or msg["error"])
     with live.client() as c:
         assert c.get(f"/tests/{test_id}").json()["status"] == msg["status"]  # what the API says
+
+
+def test_the_shifts_check_of_the_robot_model_is_published_on_the_tests_topic(live: LiveServer, sub: Subscriber):
+    live.wait_for(_connected, what="MQTT connected")
+    # the controller's own nominal model stored as "the calibration", with two poses to re-visit: the
+    # simulated arm is ~1-2 mm off its nominal model, so the check finds it drifted
+    q = np.asarray(live.worker.robot.latest().q_rad)
+    model = {
+        **robot_model_to_json("kr15", nominal_model("kr15"), PARAMETERISATION),
+        "poses": [{"q_rad": q.tolist()}, {"q_rad": (q + [0.05, -0.03, 0.0, 0.0, 0.04, 0.0]).tolist()}],
+    }
+    t0 = time.monotonic()
+    with live.client() as c:
+        put = c.put("/calibration/robot", json=model)
+        assert put.status_code == 200, put.text
+        r = c.post("/tests/verify", json={"n_poses": 2, "frames_per_pose": 1})
+        assert r.status_code == 200, r.text
+    answer = r.json()
+    msg = sub.wait_for(f"{PREFIX}/tests", since=t0, timeout_s=10).json()
+    assert msg["kind"] == "verify" and msg["status"] == "done" and msg["mode"] == "program"
+    report = msg["report"]
+    assert report["verdict"] == answer["verdict"] == "drifted"
+    assert report["model_version"] == answer["model_version"] == put.json()["version"]
+    assert report["drift"] == answer["drift"] and report["drift"]["position_max_mm"] > report["threshold_mm"]
 
 
 def _results(c: httpx.Client) -> int:
