@@ -39,6 +39,7 @@ from api.routes import (
     camera_calibration,
     compensate,
     config,
+    corrections,
     data,
     handeye,
     health,
@@ -123,7 +124,19 @@ def create_app(settings: Settings) -> FastAPI:
     # outermost of all: the WebSocket fan-out writes its frames with the server's own send (api.ws)
     app.add_middleware(TapRawSend)
     # the hand-eye and robot session routes come before /calibration/{kind} so that their paths win
-    routers = (health, measure, data, config, handeye, camera_calibration, robot_calibration, calibration, sim, tests)
+    routers = (
+        health,
+        measure,
+        corrections,
+        data,
+        config,
+        handeye,
+        camera_calibration,
+        robot_calibration,
+        calibration,
+        sim,
+        tests,
+    )
     app.include_router(robot_calibration.verify_alias)  # POST /tests/verify, before /tests/{kind}
     for module in (*routers, compensate):
         app.include_router(module.router)
