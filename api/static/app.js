@@ -265,6 +265,7 @@
     const facts = [];
     if (r.driver) facts.push(`driver ${r.driver}`);
     if (isNum(r.rate_hz)) facts.push(`${fix(r.rate_hz, 0)} Hz`);
+    if (r.moved_by) facts.push(`moved by ${r.moved_by}`);  // the one workflow moving the simulated arm
     card.querySelector(".device-facts").textContent = facts.join(" · ");
     const error = r.error || (r.state && !["ok", "absent"].includes(r.state) ? `the robot is ${r.state}` : "");
     card.querySelector(".device-error").textContent = r.state === "absent" ? "no robot is configured" : error;

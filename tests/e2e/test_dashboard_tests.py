@@ -121,6 +121,9 @@ def test_the_robot_model_card_plans_runs_saves_and_verifies_a_calibration(page: 
     page.wait("document.getElementById('rc-active').dataset.state === 'running'", "the run", 10)
     page.wait("document.getElementById('rc-progress').value > 0", "progress above 0", 30)
     assert "pose" in page.text("#rc-progress-text")
+    # the devices card says who moves the arm (one workflow at a time)
+    facts = "document.querySelector('#robot-card .device-facts').textContent"
+    page.wait(f"{facts}.includes('moved by the robot calibration session')", "the arm's owner shown", 10)
     page.wait("document.getElementById('rc-active').dataset.state === 'solved'", "the solve", 150)
     with cell.client() as c:
         result = c.get("/calibration/robot/session").json()["result"]
