@@ -63,9 +63,9 @@ async def ws_corrections(
         refusal = UNAUTHORIZED
     elif name not in worker.processors:
         refusal = f"no camera {camera!r}; the cameras are {', '.join(worker.processors)}"
-    if refusal:  # accepted, then closed with the sentence (a refused handshake could only say 403)
+    if refusal or name is None:  # accepted, then closed with the sentence (a refused handshake says only 403)
         await websocket.accept()
-        await websocket.close(code=1008, reason=refusal[:120])
+        await websocket.close(code=1008, reason=(refusal or "no camera is configured")[:120])
         return
     limits = CorrectionLimits(max_mm=max_mm, max_deg=max_deg, gain=gain, watchdog_s=watchdog_ms * 1e-3)
     loop = asyncio.get_running_loop()
@@ -92,11 +92,14 @@ async def ws_corrections(
                 if stale is not None:
                     await websocket.send_text(_message(stale, name, None))
                 continue
+            t_ns = m.t_exposure_host_ns
+            if t_ns is None:  # an outage notice: no frame (on_result passes none; the type allows it)
+                continue
             f = m.flange
             dev = None if f is None else f.deviation
             why = m.message if not m.ok else ("" if f is None else f.message)
             c = correction.update(
-                m.t_exposure_host_ns * 1e-9,
+                t_ns * 1e-9,
                 None if dev is None else dev.vector_mm,
                 None if dev is None else dev.angle_deg,
                 why or "",

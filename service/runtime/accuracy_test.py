@@ -54,7 +54,7 @@ from service.runtime.accuracy_plans import (
     measured_flange_sigma,
     table1_stops,
 )
-from service.runtime.arm import ArmBusy
+from service.runtime.arm import ArmBusy, ArmClaim
 from service.sim.robot import JointTrajectory
 from service.store.measurements import StorageError
 from service.store.tests_store import INTERRUPTED, TestStore
@@ -105,7 +105,7 @@ class _Run:
     last_flush_ns: int = 0
     centre_mm: list[float] | None = None  # the circle's nominal centre, base mm
     thread: threading.Thread | None = None
-    arm: Any = None  # its claim of the simulated arm (program mode)
+    arm: ArmClaim | None = None  # its claim of the simulated arm (program mode)
 
     def on_result(self, m: Measurement) -> None:  # the processing thread: never blocks
         try:

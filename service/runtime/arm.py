@@ -25,7 +25,9 @@ class ArmBusy(Exception):
 
 
 @dataclass
-class _Claim:
+class ArmClaim:
+    """One workflow's hold of the arm (what :meth:`ArmLease.claim` gives and :meth:`ArmLease.release` ends)."""
+
     owner: str
     until_ns: int | None = None  # released, to expire then (None: held)
 
@@ -35,18 +37,18 @@ class ArmLease:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._claim: _Claim | None = None
+        self._claim: ArmClaim | None = None
 
-    def claim(self, owner: str) -> _Claim:
+    def claim(self, owner: str) -> ArmClaim:
         """Claim the arm for ``owner`` (a phrase: "the circle accuracy test"); raises :class:`ArmBusy`."""
         with self._lock:
             current = self._current()
             if current is not None:
                 raise ArmBusy(f"the arm is being moved by {current.owner}: stop it or wait for it to end")
-            self._claim = _Claim(owner)
+            self._claim = ArmClaim(owner)
             return self._claim
 
-    def release(self, claim: _Claim, after_s: float = 0.0) -> None:
+    def release(self, claim: ArmClaim, after_s: float = 0.0) -> None:
         """End ``claim`` now or ``after_s`` from now (when the motion it started is over)."""
         with self._lock:
             if self._claim is not claim:
@@ -63,7 +65,7 @@ class ArmLease:
             current = self._current()
             return None if current is None else current.owner
 
-    def _current(self) -> _Claim | None:
+    def _current(self) -> ArmClaim | None:
         c = self._claim
         if c is not None and c.until_ns is not None and time.monotonic_ns() >= c.until_ns:
             self._claim = c = None

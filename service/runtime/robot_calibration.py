@@ -39,7 +39,7 @@ from service.core.measurement import iso_wall
 from service.core.results import PoseResult, Reason
 from service.core.robot.kinematics import nominal_model
 from service.runtime.accuracy_plans import REST_TOL_DEG, REST_TOL_MM, REST_WINDOW_S, measured_flange_sigma
-from service.runtime.arm import ArmBusy
+from service.runtime.arm import ArmBusy, ArmClaim
 from service.runtime.handeye_session import SessionError
 from service.runtime.robot_solve import plan_poses, pose_errors, solve_robot
 from service.runtime.solver_process import SolverCrashed
@@ -518,13 +518,13 @@ class RobotCalibration:
         s.thread.start()
         return s
 
-    def _claim_arm(self, owner: str) -> Any:
+    def _claim_arm(self, owner: str) -> ArmClaim:
         try:
             return self.worker.arm.claim(owner)
         except ArmBusy as e:
             raise SessionError(Reason.busy, str(e)) from None
 
-    def _run(self, s: RobotSession, arm: Any) -> None:
+    def _run(self, s: RobotSession, arm: ArmClaim) -> None:
         try:
             n = len(s.T_base_flange)
             for k in range(n):
@@ -584,7 +584,7 @@ class RobotCalibration:
         picks = (
             np.unique(np.linspace(0, len(stored) - 1, min(p.n_poses, len(stored))).round().astype(int))
             if stored
-            else []
+            else np.zeros(0, dtype=int)
         )
         if not self._busy.acquire(blocking=False):
             raise SessionError(Reason.busy, "the robot calibration is moving the arm or solving; wait for it")
@@ -634,7 +634,12 @@ class RobotCalibration:
             "poses": poses,
         }
         if self.on_verified is not None:
-            message = {"kind": "verify", "status": "done", "mode": p.mode, "t_wall": iso_wall(time.time_ns())}
+            message: dict[str, Any] = {
+                "kind": "verify",
+                "status": "done",
+                "mode": p.mode,
+                "t_wall": iso_wall(time.time_ns()),
+            }
             message["report"] = {k: v for k, v in out.items() if k not in ("ok", "poses")}
             try:
                 self.on_verified(message)
