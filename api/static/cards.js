@@ -3,7 +3,8 @@
  * `posecell.call` fetches JSON and resolves the body, or throws {reason, message, status}: the
  * service's own reason and sentence, or ours when it does not answer; a 404 resolves null when the
  * caller says it is no failure (no session yet). `posecell.headers` carries the API token typed into
- * the "Triggered measurement" card. `posecell.showFailure` / `clearFailure` fill a card's failure box.
+ * the "Triggered measurement" card. `posecell.showFailure` / `clearFailure` fill a card's failure box;
+ * `posecell.act` runs a button's action with the card's buttons held and its failure shown.
  */
 "use strict";
 
@@ -53,5 +54,22 @@ window.posecell = (() => {
     box.classList.remove("warn");
   }
 
-  return { headers, call, showFailure, clearFailure };
+  /** One button's action on a card: its failure box (`card.box`, an id) cleared, `card.state.busy`
+   * while it runs (the card's `render` holds its buttons then), a failure shown, `refresh` after. */
+  async function act(card, action) {
+    const box = document.getElementById(card.box);
+    clearFailure(box);
+    card.state.busy = true;
+    card.render();
+    try {
+      await action();
+    } catch (e) {
+      showFailure(box, e);
+    } finally {
+      card.state.busy = false;
+      await card.refresh();
+    }
+  }
+
+  return { headers, call, showFailure, clearFailure, act };
 })();

@@ -19,7 +19,6 @@
 
   const { headers, call } = window.posecell;
   const showFailure = (p) => window.posecell.showFailure($("he-failure"), p);
-  const clearFailure = () => window.posecell.clearFailure($("he-failure"));
 
   const fixed = (values, digits) => values.map((v) => Number(v).toFixed(digits)).join(", ");
 
@@ -51,20 +50,7 @@
     }
   }
 
-  /** One button's action: failures shown, the buttons held while it runs, the card refreshed after. */
-  async function act(action) {
-    clearFailure();
-    state.busy = true;
-    render();
-    try {
-      await action();
-    } catch (e) {
-      showFailure(e);
-    } finally {
-      state.busy = false;
-      await refresh();
-    }
-  }
+  const act = (action) => window.posecell.act({ box: "he-failure", state, render, refresh }, action);
 
   const start = () => act(async () => {
     const body = JSON.stringify({ n_poses: Number($("he-poses").value) });

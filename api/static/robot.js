@@ -19,25 +19,12 @@
 
   const { headers, call } = window.posecell;
   const showFailure = (p) => window.posecell.showFailure($("rc-failure"), p);
-  const clearFailure = () => window.posecell.clearFailure($("rc-failure"));
 
   const mm = (v, digits = 3) => (v === null || v === undefined ? "–" : `${Number(v).toFixed(digits)} mm`);
   const deg = (v, digits = 4) => (v === null || v === undefined ? "–" : `${Number(v).toFixed(digits)}°`);
 
-  /** One button's action: failures shown, the buttons held while it runs, the card refreshed after. */
-  async function act(action) {
-    clearFailure();
-    state.busy = true;
-    render(state.session);
-    try {
-      await action();
-    } catch (e) {
-      showFailure(e);
-    } finally {
-      state.busy = false;
-      poll();
-    }
-  }
+  const act = (action) =>
+    window.posecell.act({ box: "rc-failure", state, render: () => render(state.session), refresh: poll }, action);
 
   function plan() {
     return act(async () => {
