@@ -165,6 +165,9 @@ class ProcessingConfig(_Section):
     # does not wait for the interpreter lock behind acquisition, storage and the fan-out); "thread":
     # in the service's processing thread (one process, e.g. to profile it)
     measure_in: Literal["process", "thread"] = "process"
+    # with "process": the camera's own thread hands each frame to the child as it arrives, instead of
+    # waking the processing thread to do it (false: always through the processing thread)
+    direct_hand_over: bool = True
     # a rig's cameras are combined when their exposures lie this close (a hardware-triggered rig: ~0)
     rig_sync_tolerance_s: float = Field(0.005, gt=0, le=1, description="rig exposure pairing window, s, (0, 1]")
     code_family: Literal["posecell12", "aicon14"] = "posecell12"

@@ -7,6 +7,9 @@ dropped, never queued (a slow consumer must not build a backlog). Commands from
 other threads (software trigger, new settings) run here between fetches. Given a
 ``stream_when`` event (the worker's "processing is ready"), it connects at once but
 fetches only once it is set: frames nobody can measure yet are not counted as dropped.
+Given an ``on_frame`` hand-over (the worker's), each frame is offered to it first, in this
+thread: taken, it is already on its way to the measurement, one thread wake-up sooner than
+through the slot; refused (the measurement is full or being set up), it goes to the slot.
 """
 
 from __future__ import annotations
@@ -129,6 +132,7 @@ class CameraChannel:
         wakeup: threading.Condition,
         on_event: Callable[[str, str, str], None],
         stream_when: threading.Event | None = None,
+        on_frame: Callable[[str, Frame], bool] | None = None,
     ) -> None:
         self.name = name
         self.driver = driver
@@ -142,6 +146,7 @@ class CameraChannel:
         self._commands: queue.Queue[tuple[str, Any, threading.Event | None]] = queue.Queue()
         self._stop = threading.Event()
         self._stream_when = stream_when
+        self._on_frame = on_frame  # (camera name, frame) -> taken
         self._thread = threading.Thread(target=self._run, name=f"camera-{name}", daemon=True)
         self._last_seq: int | None = None
         self._connected_ns = time.monotonic_ns()
@@ -268,8 +273,20 @@ class CameraChannel:
                 self._stop.wait(RETRY_MIN_S)
                 continue
             self._account(frame)
+            if self._offer(frame):
+                continue
             if self.slot.put(frame):
                 self.counters.dropped += 1
+
+    def _offer(self, frame: Frame) -> bool:
+        """True when the hand-over took the frame; a failing hand-over leaves it to the slot."""
+        if self._on_frame is None:
+            return False
+        try:
+            return self._on_frame(self.name, frame)
+        except Exception:  # a bug there must not stop acquisition: the slot still works
+            log.exception("camera %s: handing a frame over failed", self.name)
+            return False
 
     def _account(self, frame: Frame) -> None:
         c = self.counters

@@ -112,8 +112,10 @@ class FramePairer:
                 self.robot_clock.add(float(t_robot_s[k]) * 1e9, float(th))
                 self._robot_fed_until_ns = th
 
-    def pair(self, frame: Frame, history: RobotHistory) -> Pairing:
-        t_exp, source = self.exposure_instant_ns(frame)
+    def pair(self, frame: Frame, history: RobotHistory, exposure: tuple[int, str] | None = None) -> Pairing:
+        """The robot's pose at the frame's exposure; ``exposure``: its :meth:`exposure_instant_ns`,
+        when it was asked for already (perhaps before newer frames were)."""
+        t_exp, source = exposure or self.exposure_instant_ns(frame)
         window_ns = int(max(self.max_gap_ns, 0.25e9))
         t_host, t_robot_s, T = history.arrays_between(t_exp - window_ns, t_exp + window_ns)
         if t_host.size == 0:

@@ -129,6 +129,20 @@ class CameraProcessor:
         """True when :meth:`begin` can hand a frame over now."""
         return self._process is None or self._process.can_submit()
 
+    def begins_at_once(self) -> bool:
+        """True when :meth:`begin` would only hand the frame to the child process: it is running, set
+        up with the current calibration and options, and can take one more. Then the camera's thread
+        may begin the frame itself; otherwise the processing thread does (it may start the child)."""
+        cal, processing = self.calibration, self.settings.processing
+        return (
+            self._process is not None
+            and self._measurer is self._process
+            and processing.measure_in == "process"
+            and cal.generation == self._generation
+            and processing is self._processing
+            and self._process.can_submit()
+        )
+
     def _current_measurer(self) -> Measurer | None:
         cal, processing = self.calibration, self.settings.processing
         if cal.generation != self._generation or processing is not self._processing:
@@ -196,7 +210,7 @@ class CameraProcessor:
         t2 = time.perf_counter()
         flange = None
         if isinstance(result, PoseResult):
-            flange = self._flange(result, frame, t_exposure_ns, robot, robot_state)
+            flange = self._flange(result, frame, (t_exposure_ns, pending.exposure_source), robot, robot_state)
         timings = dict(outcome.timings_ms)
         # the measurement as this thread saw it (in a child process: with the frame's copy and the pipe)
         timings["measure"] = (pending.t_measured - pending.t_begun) * 1e3
@@ -214,15 +228,21 @@ class CameraProcessor:
         )
 
     def _flange(
-        self, result: PoseResult, frame: Frame, t_exposure_ns: int, robot: RobotDriver | None, robot_state: DeviceState
+        self,
+        result: PoseResult,
+        frame: Frame,
+        exposure: tuple[int, str],
+        robot: RobotDriver | None,
+        robot_state: DeviceState,
     ) -> Flange:
+        t_exposure_ns, source = exposure
         T_reported, why = None, ""
         if robot is None or robot_state is DeviceState.absent:
             why = "no robot is configured"
         elif robot_state is not DeviceState.ok:
             why = f"the robot is {robot_state}"
         else:
-            pairing = self.pairer.pair(frame, robot.history)
+            pairing = self.pairer.pair(frame, robot.history, (t_exposure_ns, source))
             T_reported, why = pairing.T_base_flange, pairing.reason
         flange = flange_part(self.calibration.handeye, result.T_field_camera, T_reported, why)
         if flange.deviation is not None and T_reported is not None and flange.T_base_flange_measured is not None:

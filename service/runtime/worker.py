@@ -8,7 +8,9 @@ Threads (one owner per device, python-can / Opentrons style):
 - one processing thread that takes the newest frame of each camera, pairs it
   with the robot's pose at the exposure instant, measures it (ROI tracking,
   full frame on loss) and publishes the result to subscribers (the API's
-  WebSocket fan-out), to waiting triggered requests and to the store.
+  WebSocket fan-out), to waiting triggered requests and to the store. A frame
+  whose measurement runs in a child with room for it is handed over by its
+  camera's thread as it arrives (``service.runtime.hand_over``).
 
 Nothing here raises on bad data: every frame gives a
 :class:`~service.core.measurement.Measurement`, a failure with a ``reason`` when it
@@ -29,7 +31,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
-import multiprocessing.connection
 import threading
 import time
 from collections import deque
@@ -48,7 +49,8 @@ from service.runtime.arm import ArmLease
 from service.runtime.calibration_state import CalibrationState
 from service.runtime.cell_runtime import CellRuntime, with_stated_latencies
 from service.runtime.exposure import ExposureControl, ExposureLimits
-from service.runtime.measure_process import MEASURE_TIMEOUT_S, MeasureProcessError
+from service.runtime.hand_over import HandOver
+from service.runtime.measure_process import MeasureProcessError
 from service.runtime.processor import CameraProcessor, Pending
 from service.runtime.rig_combiner import RIG, RigCombiner
 from service.runtime.solver_process import SolverProcess
@@ -133,6 +135,15 @@ class Worker:
         self.rig = RigCombiner([c.name for c in settings.cameras], settings.processing.rig_sync_tolerance_s)
         self.handeye_session: Any = None  # service.runtime.handeye_session.HandEyeSession while one runs
         self.solver = SolverProcess()  # the API's long solves; its child starts with the first session or solve
+        self.hand_over = HandOver(
+            self.cameras,
+            self.processors,
+            self._wakeup,
+            lambda: self.settings.processing.direct_hand_over,
+            self._internal_failure,
+            self._processing_ready,
+            self._stop,
+        )
 
     @property
     def processing_ready(self) -> bool:
@@ -188,7 +199,15 @@ class Worker:
             self.processors[cfg.name] = CameraProcessor(cfg.name, self.settings, self.calibration)
             self.processors[cfg.name].failed_reason = str(e)
             return
-        ch = CameraChannel(cfg.name, driver, cfg.camera_settings(), self._wakeup, self.event, self._processing_ready)
+        ch = CameraChannel(
+            cfg.name,
+            driver,
+            cfg.camera_settings(),
+            self._wakeup,
+            self.event,
+            self._processing_ready,
+            on_frame=self.hand_over.begin_at_once,
+        )
         self.cameras[cfg.name] = ch
         self._set_exposure_control(cfg)
         self.processors[cfg.name] = CameraProcessor(cfg.name, self.settings, self.calibration)
@@ -409,16 +428,6 @@ class Worker:
 
     # --- processing ------------------------------------------------------------------------------
 
-    def _next_frame(self, timeout_s: float) -> tuple[str, Frame] | None:
-        with self._wakeup:
-            for name, ch in self.cameras.items():
-                frame = ch.slot.take()
-                if frame is not None:
-                    return name, frame
-            if timeout_s > 0 and not self._stop.is_set():
-                self._wakeup.wait(timeout_s)  # a frame or a camera's state change wakes it
-        return None
-
     def _process_loop(self) -> None:
         # build the measurers first: the compiled kernels load (or, on a fresh install, compile for
         # a minute) here, while /health says "initializing", not inside the first frame's latency
@@ -432,22 +441,23 @@ class Worker:
         # frames handed to the measurement (child processes), oldest first: while one is measured
         # the next waits in its child's pipe, and each is finished here (flange, storage, fan-out)
         # while the child measures the next
-        in_flight: deque[tuple[str, Frame, Pending | Measurement]] = deque()
+        hand = self.hand_over
         while not self._stop.is_set():
             self._publish_outages()
-            self._hand_over(in_flight, 0.0 if in_flight else 0.25)
-            if not in_flight:
+            hand.hand_over(0.0 if hand.in_flight else 0.25)
+            oldest = hand.pop()
+            if oldest is None:
                 continue
-            name, frame, pending = in_flight.popleft()
+            name, frame, pending = oldest
             processor = self.processors[name]
             if isinstance(pending, Pending):
-                self._wait_for_outcome(processor, in_flight)
+                hand.wait_for_outcome(processor)
                 try:
-                    processor.collect(pending)
+                    hand.collect(processor, pending)
                 except Exception as e:
                     pending = self._internal_failure(name, e)
             if processor.depth > 1:  # measured elsewhere: the next frame goes before this one is finished
-                self._hand_over(in_flight, 0.0)
+                hand.hand_over(0.0)
             if isinstance(pending, Pending):
                 try:
                     result = processor.finish(pending, self.robot, self.robot_state)
@@ -462,46 +472,6 @@ class Worker:
                 combined = self.rig.add(result, self.calibration.rig, self.calibration.field, self.calibration.handeye)
                 if combined is not None:
                     self._publish(RIG, combined, frame)
-
-    def _wait_for_outcome(
-        self, processor: CameraProcessor, in_flight: deque[tuple[str, Frame, Pending | Measurement]]
-    ) -> None:
-        """Wait until the oldest frame's outcome can be collected; a frame arriving meanwhile is
-        handed over at once (it would otherwise wait for this one's outcome, flange and fan-out)."""
-        conn = processor.waitable()
-        if conn is None:
-            return
-        wake = self._wakeup.fileno()
-        deadline = time.monotonic() + MEASURE_TIMEOUT_S
-        try:
-            while not conn.poll(0) and (remaining := deadline - time.monotonic()) > 0:
-                self._wakeup.drain()
-                self._hand_over(in_flight, 0.0)
-                ready = multiprocessing.connection.wait([conn, wake], remaining)
-                if conn in ready or not ready:
-                    return
-        except (OSError, EOFError):
-            return  # the child went away: collect() says so
-
-    def _hand_over(self, in_flight: deque[tuple[str, Frame, Pending | Measurement]], wait_s: float) -> None:
-        """Begin the newest waiting frames while every camera's measurement can take one more.
-
-        A frame is taken from its slot only when it can be begun at once: one held back would
-        be older than the slot's newest by the time it is.
-        """
-        depth = min((p.depth for p in self.processors.values()), default=1)
-        while len(in_flight) < depth and all(p.can_begin() for p in self.processors.values()):
-            got = self._next_frame(wait_s)
-            if got is None:
-                return
-            in_flight.append(self._begin(*got))
-            wait_s = 0.0
-
-    def _begin(self, name: str, frame: Frame) -> tuple[str, Frame, Pending | Measurement]:
-        try:
-            return name, frame, self.processors[name].begin(frame)
-        except Exception as e:
-            return name, frame, self._internal_failure(name, e)
 
     def _internal_failure(self, name: str, e: Exception) -> Measurement:
         """A frame that could not be measured for a reason of ours (a bug, a lost child): a failed result."""
@@ -679,6 +649,7 @@ class Worker:
             "calibration": self.calibration.summary(),
             "processing": {
                 **self.counters,
+                "handed_over_by_camera": self.hand_over.by_camera,  # the rest: by the processing thread
                 "latency_ms_median": _median(self._latency_ms),
                 "processing_ms_median": _median(self._processing_ms),
                 "time_offset": {n: p.time_offset_report() for n, p in self.processors.items()},
