@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import orjson
 import pytest
 
 from service.bench import service as bench_service
@@ -19,6 +20,19 @@ def test_the_probe_reads_exposure_and_seq_without_parsing_the_message():
     assert bench_service._int_after(b'{"seq":-3}', b'"seq":') == -3
 
 
+def test_a_messages_latency_is_split_into_stages_that_add_up_to_it():
+    timings = {"windows": 0.4, "child": 0.8, "measure": 1.3, "flange": 0.1, "processing": 1.5, "latency": 1.9}
+    data = orjson.dumps({"ok": True, "seq": 7, "t_exposure_unix_ns": 1_000_000, "timings_ms": timings, "x": {"y": 1}})
+    assert orjson.loads(bench_service._timings(data)) == timings
+    assert bench_service._timings(b'{"ok":false}') == b"{}"
+    arrival_ns = 1_000_000 + 2_600_000  # 2.6 ms after the exposure
+    stages = bench_service.stage_ms(arrival_ns, 1_000_000, timings)
+    assert stages == pytest.approx((0.4, 0.5, 0.8, 0.2, 0.7))  # begun 0.4 ms after the exposure, ...
+    assert sum(stages) == pytest.approx(2.6)
+    assert len(stages) == len(bench_service.STAGES)
+    assert bench_service.stage_ms(arrival_ns, 1_000_000, {"latency": 1.0}) is None  # measured in-process
+
+
 @pytest.mark.slow  # starts the service and renders the replay frames
 def test_a_row_of_the_service_benchmark_is_measured_from_the_messages():
     # the two others subscribe pose-only (targets=false), the probe takes whole messages
@@ -31,6 +45,11 @@ def test_a_row_of_the_service_benchmark_is_measured_from_the_messages():
     # the replay plays back and forth: no jump of the arm for the ROI tracking to lose (a wrap
     # every 100 frames cost two full frames, 2 % of them, and was the p99)
     assert row["full_frames"] == 0
+    stages = row["stages_ms"]
+    assert len(stages) == len(bench_service.STAGES)
+    assert all(0.0 <= p50 <= p99 < 5000.0 for p50, p99 in stages[1:])  # the first may be < 0 by clock jitter
+    # the stages' medians come to about the median exposure -> WebSocket time
+    assert 0.3 * row["ws_p50_ms"] < sum(p50 for p50, _ in stages) < 3.0 * row["ws_p50_ms"]
 
 
 def test_the_client_mixes_are_numbers_with_p_for_pose_only_others():

@@ -25,6 +25,10 @@ little as they can from the service they measure. Reported per row:
   processes under it (the measurement's children, the replay's renderer) over the
   window, divided by the frames it measured (acquisition, measurement, fan-out,
   storage).
+
+And where each message's exposure → WebSocket time went (:data:`STAGES`, p50 and p99 over the
+window), from the stage times the service puts in every message (``timings_ms``) and the probe's
+arrival stamp: so a slow p99 names its stage.
 """
 
 from __future__ import annotations
@@ -37,10 +41,21 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import orjson
+
 from service.bench.child import health, serve_child, wait_ready
 from service.bench.ws_load import read_streams
 
 RATES_HZ = (100, 250, 500, 1000)
+# where a message's exposure -> WebSocket time goes, from its timings_ms and the probe's arrival
+STAGES = (
+    ("to hand-over", "exposure to the frame's hand-over to the measurement (delivery, the camera's thread)"),
+    ("to the child and back", "the frame to the child and its outcome back, waiting behind another frame"),
+    ("child", "the child's measurement (ROI windows, resection, the targets' JSON)"),
+    ("finish", "the flange pose and the result"),
+    ("fan-out", "publication, the event loop's write, the socket and the client"),
+)
 CLIENTS = ((1, False), (50, False), (50, True))  # (clients, the others than the probe take pose-only messages)
 _CLOCK_TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
 
@@ -91,11 +106,11 @@ def _int_after(data: bytes, key: bytes) -> int | None:
     return int(data[i:j]) if j > i else None
 
 
-async def _probe(address: str, seconds: float) -> list[tuple[int, int, int]]:
-    """Read ``/ws/poses`` for ``seconds``: (arrival ns, exposure ns, seq) of every message."""
+async def _probe(address: str, seconds: float) -> list[tuple[int, int, int, bytes]]:
+    """Read ``/ws/poses`` for ``seconds``: (arrival ns, exposure ns, seq, timings JSON) of every message."""
     from websockets.asyncio.client import connect
 
-    probe: list[tuple[int, int, int]] = []
+    probe: list[tuple[int, int, int, bytes]] = []
     stop_at = time.monotonic() + seconds
     async with connect(f"ws://{address}/ws/poses?camera=cam0", max_size=None) as ws:
         await ws.recv()  # the newest result at connection: not part of the window
@@ -108,8 +123,26 @@ async def _probe(address: str, seconds: float) -> list[tuple[int, int, int]]:
             assert isinstance(data, bytes)
             exposure, seq = _int_after(data, b'"t_exposure_unix_ns":'), _int_after(data, b'"seq":')
             if exposure is not None and seq is not None:
-                probe.append((t_ns, exposure, seq))
+                probe.append((t_ns, exposure, seq, _timings(data)))
     return probe
+
+
+def _timings(data: bytes) -> bytes:
+    """The message's ``"timings_ms":{...}`` object, unparsed (parsed after the window: the probe keeps up)."""
+    i = data.find(b'"timings_ms":{')
+    j = data.find(b"}", i) if i >= 0 else -1
+    return data[i + 13 : j + 1] if j > i else b"{}"
+
+
+def stage_ms(arrival_ns: int, exposure_ns: int, timings: dict[str, float]) -> tuple[float, ...] | None:
+    """One message's exposure -> WebSocket time split into :data:`STAGES`, ms (None: not all timings)."""
+    try:
+        latency, processing = timings["latency"], timings["processing"]
+        measure, child = timings["measure"], timings["child"]
+    except KeyError:
+        return None
+    total = (arrival_ns - exposure_ns) * 1e-6
+    return (latency - processing, measure - child, child, processing - measure, total - latency)
 
 
 LOAD_NICE = 10  # the load clients' niceness: on a machine of few cores they yield to the service and the probe
@@ -124,7 +157,9 @@ def _load_process(address: str, n_clients: int, seconds: float, pose_only: bool)
     read_streams(address, f"/ws/poses?{query}", n_clients, seconds)
 
 
-def _clients(address: str, n_clients: int, seconds: float, pose_only: bool = False) -> list[tuple[int, int, int]]:
+def _clients(
+    address: str, n_clients: int, seconds: float, pose_only: bool = False
+) -> list[tuple[int, int, int, bytes]]:
     """The probe's messages while ``n_clients - 1`` other clients read too (in a spawned process;
     ``pose_only``: they subscribe with ``targets=false``, as a PLC or an MES would)."""
     if n_clients <= 1:
@@ -169,8 +204,10 @@ def _measure(
     h1, cpu1 = health(address), _cpu_s(pid)
     if len(probe) < 2:
         raise RuntimeError(f"{rate_hz} Hz, {n_clients} clients: the probe received {len(probe)} results")
-    latency_ms = [(t - e) * 1e-6 for t, e, _ in probe]
-    seqs = [s for _, _, s in probe]
+    latency_ms = [(t - e) * 1e-6 for t, e, _, _ in probe]
+    seqs = [s for _, _, s, _ in probe]
+    split = [stage_ms(t, e, orjson.loads(tm)) for t, e, _, tm in probe]
+    stages = np.array([x for x in split if x is not None]).reshape(-1, len(STAGES))
     span_s = (probe[-1][0] - probe[0][0]) * 1e-9
     exposed = seqs[-1] - seqs[0] + 1
     frames = h1["processing"]["results"] - h0["processing"]["results"]
@@ -189,6 +226,8 @@ def _measure(
         "processing_ms_median": h1["processing"].get("processing_ms_median"),
         # frames measured in full in the window (the ROI tracking lost): none in steady tracking
         "full_frames": h1["processing"]["full"] - h0["processing"]["full"],
+        # per stage (STAGES): (p50, p99) ms
+        "stages_ms": [(_quantile(list(c), 0.5), _quantile(list(c), 0.99)) for c in stages.T],
     }
 
 
@@ -217,6 +256,21 @@ def run(
             f"| {r['ws_p50_ms']:.1f} / {r['ws_p99_ms']:.1f} / {r['ws_max_ms']:.1f} | {r['commit_p99_ms']:.1f} "
             f"| {r['cpu_ms_per_frame']:.2f} |"
         )
+    lines += [
+        "",
+        "Where the exposure → WebSocket time goes, p50 / p99 ms per stage:",
+        "",
+        "| camera Hz | clients | " + " | ".join(name for name, _ in STAGES) + " |",
+        "|---:|---:|" + "---:|" * len(STAGES),
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['rate_hz']:.0f} | {r['clients']}{' (pose only)' if r['pose_only'] else ''} | "
+            + " | ".join(f"{p50:.2f} / {p99:.2f}" for p50, p99 in r["stages_ms"])
+            + " |"
+        )
+    lines.append("")
+    lines += [f"- *{name}*: {what}" for name, what in STAGES]
     lines.append(
         f'\n`posecell serve` in a child process, the replay camera (`source = "sim"`), ROI tracking, every '
         f"result stored; the probe takes every message with its targets (~15 kB); *pose only*: the other "
