@@ -210,7 +210,7 @@ class CameraProcessor:
         t2 = time.perf_counter()
         flange = None
         if isinstance(result, PoseResult):
-            flange = self._flange(result, frame, (t_exposure_ns, pending.exposure_source), robot, robot_state)
+            flange = self._flange(result, pending, robot, robot_state)
         timings = dict(outcome.timings_ms)
         # the measurement as this thread saw it (in a child process: with the frame's copy and the pipe)
         timings["measure"] = (pending.t_measured - pending.t_begun) * 1e3
@@ -228,21 +228,17 @@ class CameraProcessor:
         )
 
     def _flange(
-        self,
-        result: PoseResult,
-        frame: Frame,
-        exposure: tuple[int, str],
-        robot: RobotDriver | None,
-        robot_state: DeviceState,
+        self, result: PoseResult, pending: Pending, robot: RobotDriver | None, robot_state: DeviceState
     ) -> Flange:
-        t_exposure_ns, source = exposure
+        t_exposure_ns = pending.t_exposure_ns
         T_reported, why = None, ""
         if robot is None or robot_state is DeviceState.absent:
             why = "no robot is configured"
         elif robot_state is not DeviceState.ok:
             why = f"the robot is {robot_state}"
         else:
-            pairing = self.pairer.pair(frame, robot.history, (t_exposure_ns, source))
+            # the instant the frame was begun with: a newer frame may have been begun since
+            pairing = self.pairer.pair(pending.frame, robot.history, (t_exposure_ns, pending.exposure_source))
             T_reported, why = pairing.T_base_flange, pairing.reason
         flange = flange_part(self.calibration.handeye, result.T_field_camera, T_reported, why)
         if flange.deviation is not None and T_reported is not None and flange.T_base_flange_measured is not None:
