@@ -10,6 +10,7 @@ POST   /calibration/robot/session/run         simulated cell only: visit, record
 POST   /calibration/robot/session/solve       identify and report before/after on the hold-out poses
 POST   /calibration/robot/session/save        store the model as calibration kind ``robot`` (versioned)
 POST   /calibration/robot/verify              re-measure stored poses: drift against the stored model, a verdict
+                                              (kept as a test of kind "verify": GET /tests lists it)
 
 The session lives on ``app.state.robot_calibration``, made in this router's lifespan (after the app's
 own, which started the worker).
@@ -30,16 +31,20 @@ from api.security import Authorized
 from service.core.results import Reason
 from service.runtime.handeye_session import SessionError
 from service.runtime.robot_calibration import RobotCalibration
+from service.store.tests_store import TestStore
 
 
 @contextlib.asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     # each verification's outcome goes to the plant beside the accuracy tests' reports (MQTT <prefix>/tests)
-    app.state.robot_calibration = RobotCalibration(app.state.worker, lambda m: plant.publish_test_report(app, m))
+    # each kept in the tests' table too (kind "verify"), on a connection of its own to the database
+    tests = TestStore(app.state.store.path)
+    app.state.robot_calibration = RobotCalibration(app.state.worker, lambda m: plant.publish_test_report(app, m), tests)
     try:
         yield
     finally:
         app.state.robot_calibration.close()
+        tests.close()
 
 
 router = APIRouter(prefix="/calibration/robot", tags=["robot calibration"], lifespan=lifespan)

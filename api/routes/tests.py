@@ -144,6 +144,12 @@ def samples(
     per: Literal["frame", "stop"] | None = None,
 ) -> Response:
     t = _test(tests, test_id)
+    if t["kind"] == "verify":
+        raise ApiError(
+            Reason.not_found,
+            f"test {test_id} is a verification of the robot model: it keeps no samples, its per-pose drift "
+            f"is in GET /tests/{test_id}/report.json",
+        )
     rows = _call(tests.store.samples, test_id)
     if format == "json":
         return JSONResponse({"id": test_id, "kind": t["kind"], "samples": rows})

@@ -45,6 +45,8 @@ from service.runtime.robot_solve import plan_poses, pose_errors, solve_robot
 from service.runtime.solver_process import SolverCrashed
 from service.sim.robot import JointTrajectory
 from service.store.formats import FormatError
+from service.store.measurements import StorageError
+from service.store.tests_store import TestStore
 
 log = logging.getLogger(__name__)
 
@@ -323,10 +325,13 @@ class RobotSession:
 class RobotCalibration:
     """The one robot calibration session of ``worker``'s cell, and the verification against the stored model."""
 
-    def __init__(self, worker: Any, on_verified: Callable[[dict[str, Any]], None] | None = None) -> None:
+    def __init__(
+        self, worker: Any, on_verified: Callable[[dict[str, Any]], None] | None = None, tests: TestStore | None = None
+    ) -> None:
         self.worker = worker
         # told of every verification's outcome (the plant's MQTT <prefix>/tests, beside the accuracy tests)
         self.on_verified = on_verified
+        self.tests = tests  # where each verification is kept (kind "verify"), listed with the accuracy tests
         self.session: RobotSession | None = None
         self._busy = threading.Lock()  # one thing moves the arm or solves at a time
 
@@ -633,19 +638,37 @@ class RobotCalibration:
             "nominal": {k: v for k, v in nominal_err.items() if not k.startswith("per_pose")},
             "poses": poses,
         }
+        out["test_id"], out["storage_error"] = self._keep(p, out)
         if self.on_verified is not None:
             message: dict[str, Any] = {
                 "kind": "verify",
                 "status": "done",
                 "mode": p.mode,
                 "t_wall": iso_wall(time.time_ns()),
+                "id": out["test_id"],
             }
-            message["report"] = {k: v for k, v in out.items() if k not in ("ok", "poses")}
+            message["report"] = {k: v for k, v in out.items() if k not in ("ok", "poses", "test_id", "storage_error")}
             try:
                 self.on_verified(message)
             except Exception:  # the plant's publisher never fails the check itself
                 log.exception("publishing the verification")
         return out
+
+    def _keep(self, p: VerifyParams, out: dict[str, Any]) -> tuple[int | None, str]:
+        """Store the verification with its per-pose drift (committed), so that the shift's checks have a
+        history (``GET /tests``, ``GET /tests/{id}/report.json``): (its id, "") or (None, why not).
+
+        A store that refuses does not undo the check the arm has made: the answer says it is not kept."""
+        if self.tests is None:
+            return None, "no tests store"
+        report = {k: v for k, v in out.items() if k != "ok"}
+        try:
+            test_id = self.tests.create("verify", p.mode, p.model_dump())
+            self.tests.update(test_id, status="done", progress=1.0, progress_message=out["verdict"], report=report)
+        except StorageError as e:
+            self.worker.event("warning", "robot_verify_not_stored", f"the verification was not stored: {e}")
+            return None, str(e)
+        return test_id, ""
 
     def close(self) -> None:
         self.discard()

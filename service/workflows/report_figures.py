@@ -339,6 +339,7 @@ _BY_KIND: dict[str, Callable[[dict[str, Any], Sequence[str]], dict[str, bytes]]]
     "circle": circle_figures,
     "iso9283": iso9283_figures,
     "table1": table1_figures,
+    "verify": lambda report, formats: {},  # a verification's per-pose table is its picture
 }
 
 

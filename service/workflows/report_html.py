@@ -21,6 +21,7 @@ TITLES = {
     "circle": "ISO 230-4 circular test",
     "iso9283": "ISO 9283 pose characteristics",
     "table1": "Forward and reverse visits (the paper's Table 1)",
+    "verify": "Robot model verification (the shift's check)",
 }
 #: What a figure means (ISO 230-4, ISO 9283:1998, the seed paper): the tables' "meaning" column
 MEANINGS = {
@@ -213,7 +214,18 @@ def _table1_body(report: dict[str, Any]) -> list[str]:
     return parts
 
 
-_BODIES = {"circle": _circle_body, "iso9283": _iso9283_body, "table1": _table1_body}
+def _verify_body(report: dict[str, Any]) -> list[str]:
+    head = {k: v for k, v in report.items() if k in ("verdict", "model_version", "threshold_mm", "threshold_deg")}
+    parts = ["<h2>Verdict</h2>", key_value_table(head)]
+    parts += ["<h2>Drift from the stored model</h2>", key_value_table(report.get("drift", {}))]
+    parts += ["<h2>Error of the nominal model, for comparison</h2>", key_value_table(report.get("nominal", {}))]
+    poses = report.get("poses", [])
+    if poses:
+        parts += ["<h2>Per pose</h2>", rows_table(poses, _columns(poses, ["stored_pose"]))]
+    return parts
+
+
+_BODIES = {"circle": _circle_body, "iso9283": _iso9283_body, "table1": _table1_body, "verify": _verify_body}
 CAPTIONS = {
     "circle.svg": "Radial deviation against angle about the common LSC centre, magnified (the scale is on the "
     "plot; the nominal circle true to size, dashed): cw and ccw paths, dotted the G envelope circles of each "

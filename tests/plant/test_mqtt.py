@@ -170,6 +170,7 @@ def test_the_shifts_check_of_the_robot_model_is_published_on_the_tests_topic(liv
     answer = r.json()
     msg = sub.wait_for(f"{PREFIX}/tests", since=t0, timeout_s=10).json()
     assert msg["kind"] == "verify" and msg["status"] == "done" and msg["mode"] == "program"
+    assert msg["id"] == answer["test_id"] is not None  # the kept verification's id in GET /tests
     report = msg["report"]
     assert report["verdict"] == answer["verdict"] == "drifted"
     assert report["model_version"] == answer["model_version"] == put.json()["version"]
