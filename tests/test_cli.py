@@ -145,6 +145,8 @@ def test_calibrate_handeye_rejects_a_non_rigid_matrix(tmp_path):
 def test_bench_accuracy_prints_both_paper_tables():
     r = run("bench", "accuracy", "--trials", "20")
     assert r.returncode == 0, r.stderr
+    host = r.stdout.splitlines()[0]  # the figures say which machine they come from
+    assert host.startswith("_host: ") and " cores" in host and "NumPy " in host and "OpenCV " in host, host
     assert "Table 3" in r.stdout and "Table 2" in r.stdout
     assert r.stdout.count("| resection |") == 2 and r.stdout.count("| intersection |") == 2
 

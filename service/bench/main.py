@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import os
+import platform
 import sys
 import time
 from collections.abc import Callable
+from importlib import metadata
+from pathlib import Path
 
 
 def _accuracy(args: argparse.Namespace) -> str:
@@ -42,12 +46,38 @@ SECTIONS: dict[str, Callable[[argparse.Namespace], str]] = {
 }
 
 
+def host_line() -> str:
+    """Which machine and libraries a run's figures come from: the speed of this work follows the CPU
+    (the same code measured 3.2 ms full frame on one 2-core VM and 9 ms on another), so a table
+    without its host is not a figure."""
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        load = f", load {os.getloadavg()[0]:.1f} at the start"
+    except OSError:
+        load = ""
+    libs = []
+    for name, dist in (("NumPy", "numpy"), ("numba", "numba"), ("OpenCV", "opencv-python-headless")):
+        try:
+            libs.append(f"{name} {metadata.version(dist)}")
+        except metadata.PackageNotFoundError:
+            continue
+    return f"host: {model}, {os.cpu_count()} cores{load}; Python {platform.python_version()}, {', '.join(libs)}"
+
+
 def run_bench(args: argparse.Namespace) -> int:
     names = args.sections or list(SECTIONS)
     unknown = [n for n in names if n not in SECTIONS]
     if unknown:
         print(f"posecell bench: unknown section(s) {', '.join(unknown)}; known: {', '.join(SECTIONS)}", file=sys.stderr)
         return 2
+    sys.stdout.write(f"_{host_line()}_\n\n")
     for name in names:
         t0 = time.perf_counter()
         text = SECTIONS[name](args)
