@@ -68,7 +68,10 @@ def get(worker: WorkerDep) -> dict[str, Any]:
 
 @router.delete("", dependencies=[Authorized], summary="Discard the session")
 def delete(worker: WorkerDep) -> dict[str, Any]:
+    s = getattr(worker, "handeye_session", None)
     worker.handeye_session = None
+    if s is not None:
+        s.discard()
     return {"ok": True}
 
 
@@ -128,10 +131,14 @@ def solve(worker: WorkerDep, apply: bool = False) -> dict[str, Any]:
         result = s.solve(worker.calibration.camera, worker.calibration.field, run=worker.solver.run)
         if apply:
             try:
-                s.applied_version = worker.calibration.update("handeye", s.handeye_payload(), note="hand-eye session")
+                version = worker.calibration.update("handeye", s.handeye_payload(), note="hand-eye session")
             except FormatError as e:  # a result outside the physical limits is not stored
                 raise ApiError(Reason.bad_input, f"the hand-eye result is not applied: {e}") from None
-            worker.event("info", "calibration_changed", f"hand-eye version {s.applied_version} from a session")
+            worker.event("info", "calibration_changed", f"hand-eye version {version} from a session")
+            why = s.applied(version)
+            if why:
+                worker.event("warning", "session_not_stored", why)
+                result = {**result, "session_storage_error": why}
     except SessionError as e:
         raise _err(e) from None
     except SolverCrashed as e:

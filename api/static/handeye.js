@@ -121,7 +121,8 @@
       const q = s.motion;
       $("he-state").textContent = `${s.proposals.length} poses proposed for camera ${s.camera}; ${s.n_samples} samples recorded`
         + (q ? `; rotations up to ${Number(q.max_rotation_deg).toFixed(1)}°, axis spread ${Number(q.axis_spread).toFixed(2)}` : "")
-        + (s.n_samples < 3 ? " (3 or more are needed)." : ".");
+        + (s.n_samples < 3 ? " (3 or more are needed)." : ".")
+        + (s.restored ? " Restored after a restart." : "");
     }
     const rows = s.proposals.map((p, k) => {
       const tr = document.createElement("tr");

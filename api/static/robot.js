@@ -95,7 +95,8 @@
     $("rc-progress").value = Number(s.progress) || 0;
     const skipped = s.skipped.length ? ` · ${s.skipped.length} skipped` : "";
     $("rc-progress-text").textContent = `${Math.round((Number(s.progress) || 0) * 100)} % · `
-      + `${s.progress_message || ""} · ${s.n_samples} samples${skipped}`;
+      + `${s.progress_message || ""} · ${s.n_samples} samples${skipped}`
+      + (s.restored ? " · restored after a restart" : "");
     const ob = s.observability || {};
     const frozen = (ob.frozen_structural || []).join(", ");
     $("rc-plan-text").textContent = `Plan: condition ${ob.condition}, ${ob.n_identifiable} parameters identifiable`

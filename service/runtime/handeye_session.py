@@ -12,7 +12,9 @@
    as unknowns (``core.handeye_images``); residuals per sample and warnings come back; ``apply`` stores the result
    versioned and atomically, and the worker uses it from the next frame.
 
-Samples can be exported in the format of ``posecell calibrate handeye --samples``.
+Samples can be exported in the format of ``posecell calibrate handeye --samples``. The session is
+kept on disk (:mod:`service.runtime.session_store`): its plan and each sample are written before they
+are acknowledged, and a restarted service offers it again (:meth:`HandEyeSession.restore`).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -78,6 +80,31 @@ class Sample:
             "camera": self.camera,
         }
 
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Sample:
+        """The sample :meth:`to_dict` wrote (the stored session's)."""
+        points = d.get("points") or []
+        return cls(
+            T_base_flange=np.asarray(d["T_base_flange"], dtype=np.float64).reshape(4, 4),
+            T_field_camera=np.asarray(d["T_field_camera"], dtype=np.float64).reshape(4, 4),
+            sigma_position_mm=[float(v) for v in d["sigma_position_mm"]],
+            sigma_rotation_deg=[float(v) for v in d["sigma_rotation_deg"]],
+            rms_px=float(d["rms_px"]),
+            n_targets=int(d["n_targets"]),
+            t_wall=str(d["t_wall"]),
+            camera=str(d["camera"]),
+            ids=[str(p["id"]) for p in points],
+            uv=np.array([p["uv"] for p in points], dtype=np.float64).reshape(-1, 2) if points else None,
+        )
+
+
+class SessionStoreLike(Protocol):
+    """Where a session is kept (:class:`service.runtime.session_store.SessionStore`)."""
+
+    def save(self, kind: str, state: dict[str, Any]) -> None: ...
+
+    def discard(self, kind: str) -> None: ...
+
 
 @dataclass
 class HandEyeSession:
@@ -88,7 +115,9 @@ class HandEyeSession:
     result: dict[str, Any] | None = None
     applied_version: int | None = None
     created_wall: str = field(default_factory=lambda: time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+    restored: bool = False  # read back from disk at the service's start
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    store: SessionStoreLike | None = field(default=None, repr=False)
 
     # --- 1. plan ------------------------------------------------------------------------------
 
@@ -111,7 +140,50 @@ class HandEyeSession:
         except SolveError as e:
             raise SessionError(e.reason, e.message) from None
         poses = flange_poses_for_views(views, reported, T_fc, X_guess)
-        return cls(camera=camera, proposals=poses, X_guess=X_guess)
+        session = cls(camera=camera, proposals=poses, X_guess=X_guess, store=getattr(worker, "sessions", None))
+        session.persist()  # a plan that is not stored is not started
+        return session
+
+    # --- kept across restarts -----------------------------------------------------------------
+
+    def to_state(self) -> dict[str, Any]:
+        """What :meth:`restore` needs (the lock held by the caller or no other thread)."""
+        return {
+            "camera": self.camera,
+            "proposals": [T.tolist() for T in self.proposals],
+            "X_guess": self.X_guess.tolist(),
+            "samples": [x.to_dict() for x in self.samples],
+            "result": self.result,
+            "applied_version": self.applied_version,
+            "created": self.created_wall,
+        }
+
+    @classmethod
+    def restore(cls, state: dict[str, Any], store: SessionStoreLike | None = None) -> HandEyeSession:
+        """The session :meth:`to_state` wrote; raises ``KeyError``, ``TypeError`` or ``ValueError`` on
+        a state that is not one."""
+        return cls(
+            camera=str(state["camera"]),
+            proposals=[np.asarray(T, dtype=np.float64).reshape(4, 4) for T in state["proposals"]],
+            X_guess=np.asarray(state["X_guess"], dtype=np.float64).reshape(4, 4),
+            samples=[Sample.from_dict(d) for d in state["samples"]],
+            result=state.get("result"),
+            applied_version=state.get("applied_version"),
+            created_wall=str(state["created"]),
+            restored=True,
+            store=store,
+        )
+
+    def persist(self) -> None:
+        """Write the session to its store (raises ``SessionError`` storage_unavailable)."""
+        if self.store is not None:
+            with self.lock:
+                state = self.to_state()
+            self.store.save("handeye", state)
+
+    def discard(self) -> None:
+        if self.store is not None:
+            self.store.discard("handeye")
 
     # --- 2. record ----------------------------------------------------------------------------
 
@@ -152,16 +224,29 @@ class HandEyeSession:
             uv=np.array([t.uv for t in used]).reshape(-1, 2),
         )
         with self.lock:
+            before = (list(self.samples), self.result)
             self.samples.append(sample)
             self.result = None
+        self._persist_or_undo(before, "the sample is not recorded")
         return sample
 
     def remove(self, index: int) -> None:
         with self.lock:
             if not 0 <= index < len(self.samples):
                 raise SessionError(Reason.not_found, f"no sample #{index}; there are {len(self.samples)}")
+            before = (list(self.samples), self.result)
             del self.samples[index]
             self.result = None
+        self._persist_or_undo(before, "the sample is not removed")
+
+    def _persist_or_undo(self, before: tuple[list[Sample], dict[str, Any] | None], what: str) -> None:
+        """Store the change, or undo it and say so: a change is acknowledged only once it is stored."""
+        try:
+            self.persist()
+        except SessionError as e:
+            with self.lock:
+                self.samples, self.result = before
+            raise SessionError(e.reason, f"{what}: {e.message}") from None
 
     # --- 3. solve and apply -------------------------------------------------------------------
 
@@ -178,7 +263,19 @@ class HandEyeSession:
         out = (run or _call)(solve_samples, samples, camera, target_field)
         with self.lock:
             self.result = out
+        self.persist()  # the result is the samples' (solved again if lost): the answer says when not stored
         return out
+
+    def applied(self, version: int | None) -> str:
+        """The result is stored as hand-eye calibration ``version``: "" once the session says so on
+        disk too, else why not (the calibration store has the version whatever becomes of the
+        session's file, so this is no reason to fail the call that applied it)."""
+        self.applied_version = version
+        try:
+            self.persist()
+        except SessionError as e:
+            return e.message
+        return ""
 
     def handeye_payload(self) -> dict[str, Any]:
         if self.result is None:
@@ -205,6 +302,7 @@ class HandEyeSession:
             "result": result,
             "applied_version": self.applied_version,
             "X_guess": self.X_guess.tolist(),
+            "restored": self.restored,
         }
 
     def export(self) -> dict[str, Any]:

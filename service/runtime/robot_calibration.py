@@ -19,6 +19,11 @@
 
 :func:`verify` re-visits stored poses (or, in record mode, measures where the robot rests) and
 reports the drift of the measured flange from what the stored model predicts at the joints.
+
+The session is kept on disk (:mod:`service.runtime.session_store`): the plan and each sample are
+written before they are acknowledged. A service that stops during a run (a restart, a power cut)
+offers the session again as ``interrupted`` with every sample it had; ``run`` then visits only the
+poses not yet recorded.
 """
 
 from __future__ import annotations
@@ -109,6 +114,24 @@ class RobotSample:
             "n_frames": self.n_frames,
             "t_wall": self.t_wall,
         }
+
+    def to_state(self) -> dict[str, Any]:
+        """:meth:`to_dict` with the joints as measured (rad, not rounded), for the stored session."""
+        return {**self.to_dict(), "q_rad": self.q_rad.tolist()}
+
+    @classmethod
+    def from_state(cls, d: dict[str, Any]) -> RobotSample:
+        return cls(
+            pose=None if d["pose"] is None else int(d["pose"]),
+            holdout=bool(d["holdout"]),
+            q_rad=np.asarray(d["q_rad"], dtype=np.float64).reshape(-1),
+            T_base_flange_reported=np.asarray(d["T_base_flange_reported"], dtype=np.float64).reshape(4, 4),
+            T_base_flange_measured=np.asarray(d["T_base_flange_measured"], dtype=np.float64).reshape(4, 4),
+            sigma_position_mm=[float(v) for v in d["sigma_position_mm"]],
+            sigma_rotation_deg=[float(v) for v in d["sigma_rotation_deg"]],
+            n_frames=int(d["n_frames"]),
+            t_wall=str(d["t_wall"]),
+        )
 
 
 def _mean_T(Ts: list[np.ndarray]) -> np.ndarray:
@@ -270,15 +293,73 @@ class RobotSession:
     samples: list[RobotSample] = field(default_factory=list)
     result: dict[str, Any] | None = None
     saved_version: int | None = None
-    status: str = "planned"  # planned | running | solving | solved | failed | cancelled
+    status: str = "planned"  # planned | running | solving | solved | failed | cancelled | interrupted
     progress: float = 0.0
     message: str = "planned: move to the poses and record a sample at each"
     error: str | None = None
     skipped: list[dict[str, Any]] = field(default_factory=list)  # poses of a run that could not be measured
     created_wall: str = field(default_factory=lambda: iso_wall(time.time_ns()))
+    restored: bool = False  # read back from disk at the service's start
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     cancel: threading.Event = field(default_factory=threading.Event, repr=False)
+    stopping: bool = False  # the service is stopping: a run it cancels is interrupted, not cancelled
     thread: threading.Thread | None = None
+
+    def to_state(self) -> dict[str, Any]:
+        """What :meth:`restore` needs."""
+        with self.lock:
+            samples = [x.to_state() for x in self.samples]
+            skipped = list(self.skipped)
+        return {
+            "params": self.params.model_dump(),
+            "camera": self.camera,
+            "robot": self.robot,
+            "T_base_flange": self.T_base_flange.tolist(),
+            "q_rad": self.q_rad.tolist(),
+            "observability": self.observability,
+            "n_candidates": self.n_candidates,
+            "samples": samples,
+            "result": self.result,
+            "saved_version": self.saved_version,
+            "status": self.status,
+            "progress": self.progress,
+            "message": self.message,
+            "error": self.error,
+            "skipped": skipped,
+            "created": self.created_wall,
+        }
+
+    @classmethod
+    def restore(cls, state: dict[str, Any]) -> RobotSession:
+        """The session :meth:`to_state` wrote; one that was running or solving is ``interrupted``.
+        Raises ``KeyError``, ``TypeError`` or ``ValueError`` (pydantic's too) on a state that is not one."""
+        samples = [RobotSample.from_state(d) for d in state["samples"]]
+        status, message = str(state["status"]), str(state["message"])
+        if status in ("running", "solving", "interrupted"):
+            status = "interrupted"
+            message = (
+                f"interrupted: the service stopped during the run; {len(samples)} samples are kept. "
+                "Run again to visit the poses not yet recorded, or solve"
+            )
+        return cls(
+            params=StartParams.model_validate(state["params"]),
+            camera=str(state["camera"]),
+            robot=str(state["robot"]),
+            T_base_flange=np.asarray(state["T_base_flange"], dtype=np.float64).reshape(-1, 4, 4),
+            q_rad=np.asarray(state["q_rad"], dtype=np.float64).reshape(-1, 6),
+            observability=dict(state["observability"]),
+            n_candidates=int(state["n_candidates"]),
+            samples=samples,
+            result=state.get("result"),
+            saved_version=state.get("saved_version"),
+            status=status,
+            progress=float(state["progress"]),
+            message=message,
+            error=state.get("error"),
+            skipped=list(state.get("skipped") or []),
+            created_wall=str(state["created"]),
+            restored=True,
+        )
 
     @property
     def n_poses(self) -> int:
@@ -319,6 +400,7 @@ class RobotSession:
             "samples": [s.to_dict() for s in samples],
             "result": None if self.result is None else {k: v for k, v in self.result.items() if k != "model_file"},
             "saved_version": self.saved_version,
+            "restored": self.restored,
         }
 
 
@@ -332,8 +414,41 @@ class RobotCalibration:
         # told of every verification's outcome (the plant's MQTT <prefix>/tests, beside the accuracy tests)
         self.on_verified = on_verified
         self.tests = tests  # where each verification is kept (kind "verify"), listed with the accuracy tests
-        self.session: RobotSession | None = None
+        self.store = getattr(worker, "sessions", None)  # the session on disk (none: in memory only)
         self._busy = threading.Lock()  # one thing moves the arm or solves at a time
+        self.session: RobotSession | None = self._restored()
+
+    # --- kept across restarts ----------------------------------------------------------------------
+
+    def _restored(self) -> RobotSession | None:
+        if self.store is None or (state := self.store.load("robot")) is None:
+            return None
+        try:
+            s = RobotSession.restore(state)
+        except (KeyError, TypeError, ValueError) as e:
+            self.store.set_aside("robot", f"{type(e).__name__}: {e}")
+            return None
+        self.worker.event(
+            "info",
+            "session_restored",
+            f"robot calibration session of {s.created_wall} restored ({s.status}) with {len(s.samples)} samples",
+        )
+        return s
+
+    def _persist(self, s: RobotSession) -> None:
+        """Write the session (raises ``SessionError`` storage_unavailable)."""
+        if self.store is not None:
+            self.store.save("robot", s.to_state())
+
+    def _persist_quietly(self, s: RobotSession) -> str:
+        """Write the session where a failure must not stop what called it (a run goes on, a stored
+        model stays stored): "" or why not, said as an event too."""
+        try:
+            self._persist(s)
+        except SessionError as e:
+            self.worker.event("warning", "session_not_stored", e.message)
+            return e.message
+        return ""
 
     # --- start ---------------------------------------------------------------------------------
 
@@ -390,9 +505,11 @@ class RobotCalibration:
             raise SessionError(Reason.solver_unavailable, f"{e}; start the session again") from None
         finally:
             self._busy.release()
-        self.session = RobotSession(
+        session = RobotSession(
             p, camera, robot, plan["T_base_flange"], plan["q_rad"], plan["observability"], plan["n_candidates"]
         )
+        self._persist(session)  # a plan that is not stored is not started (it replaces the one on disk)
+        self.session = session
         w.event("info", "robot_calibration", f"robot calibration session planned: {p.n_poses} + {p.n_holdout} poses")
         return self.session
 
@@ -409,6 +526,8 @@ class RobotCalibration:
             s.cancel.set()
             s.thread.join(timeout=30.0)
         self.session = None
+        if s is not None and self.store is not None:
+            self.store.discard("robot")
 
     # --- visiting and recording ------------------------------------------------------------------
 
@@ -443,8 +562,10 @@ class RobotCalibration:
         finally:
             self._busy.release()
         with s.lock:
+            before = (list(s.samples), s.result)
             s.samples = [x for x in s.samples if pose is None or x.pose != pose] + [sample]
             s.result = None
+        self._persist_or_undo(s, before, "the sample is not recorded")
         return sample
 
     def remove(self, index: int) -> None:
@@ -452,8 +573,21 @@ class RobotCalibration:
         with s.lock:
             if not 0 <= index < len(s.samples):
                 raise SessionError(Reason.not_found, f"no sample #{index}; there are {len(s.samples)}")
+            before = (list(s.samples), s.result)
             del s.samples[index]
             s.result = None
+        self._persist_or_undo(s, before, "the sample is not removed")
+
+    def _persist_or_undo(
+        self, s: RobotSession, before: tuple[list[RobotSample], dict[str, Any] | None], what: str
+    ) -> None:
+        """Store the change, or undo it and say so: a change is acknowledged only once it is stored."""
+        try:
+            self._persist(s)
+        except SessionError as e:
+            with s.lock:
+                s.samples, s.result = before
+            raise SessionError(e.reason, f"{what}: {e.message}") from None
 
     # --- solving and storing -------------------------------------------------------------------------
 
@@ -485,6 +619,7 @@ class RobotCalibration:
         try:
             out = self._solve(s)
             s.status, s.message, s.error = "solved", "solved: save it to use it", None
+            self._persist(s)  # the result is the samples' (solved again if lost): a 503 says it is not kept
         finally:
             self._busy.release()
         return {k: v for k, v in out.items() if k != "model_file"}
@@ -500,6 +635,7 @@ class RobotCalibration:
             raise SessionError(Reason.bad_input, f"the identified model is not stored: {e}") from None
         s.saved_version = version
         self.worker.event("info", "calibration_changed", f"robot model version {version} from a calibration session")
+        self._persist_quietly(s)  # the model is stored (versioned) whatever becomes of the session's file
         return version
 
     # --- the simulated cell's one call -----------------------------------------------------------------
@@ -517,9 +653,12 @@ class RobotCalibration:
         except SessionError:
             self._busy.release()
             raise
+        # an interrupted run goes on where it stopped: the poses already recorded are not visited again
+        resume = s.status == "interrupted"
         s.status, s.progress, s.error = "running", 0.0, None
         s.cancel.clear()
-        s.thread = threading.Thread(target=self._run, args=(s, arm), name="robot-calibration", daemon=True)
+        self._persist_quietly(s)
+        s.thread = threading.Thread(target=self._run, args=(s, arm, resume), name="robot-calibration", daemon=True)
         s.thread.start()
         return s
 
@@ -529,10 +668,14 @@ class RobotCalibration:
         except ArmBusy as e:
             raise SessionError(Reason.busy, str(e)) from None
 
-    def _run(self, s: RobotSession, arm: ArmClaim) -> None:
+    def _run(self, s: RobotSession, arm: ArmClaim, resume: bool = False) -> None:
         try:
             n = len(s.T_base_flange)
+            with s.lock:
+                recorded = {x.pose for x in s.samples} if resume else set()
             for k in range(n):
+                if k in recorded:
+                    continue
                 s.progress, s.message = k / (n + 1), f"pose {k + 1} of {n}{' (hold-out)' if s.is_holdout(k) else ''}"
                 self._move(s, k, s.cancel)
                 try:
@@ -543,19 +686,25 @@ class RobotCalibration:
                     continue
                 with s.lock:
                     s.samples = [x for x in s.samples if x.pose != k] + [sample]
+                self._persist_quietly(s)  # the run goes on; the event says when a sample is not kept
             self.worker.arm.release(arm)  # the solve does not move it
             s.status, s.progress, s.message = "solving", n / (n + 1), "identifying the kinematic errors"
             self._solve(s)
             s.status, s.progress, s.message = "solved", 1.0, "solved: save it to use it"
         except SessionError as e:
             cancelled = s.cancel.is_set()
-            s.status = "cancelled" if cancelled else "failed"
-            s.error = None if cancelled else e.message
-            s.message = s.status if cancelled else f"failed: {e.message}"
+            if cancelled and s.stopping:  # the service stops: offered again, as interrupted, at its start
+                s.status, s.error, s.message = "interrupted", None, "interrupted: the service stopped"
+            else:
+                s.status = "cancelled" if cancelled else "failed"
+                s.error = None if cancelled else e.message
+                s.message = s.status if cancelled else f"failed: {e.message}"
         except Exception as e:  # a bug must not leave the session "running"
             log.exception("robot calibration run")
             s.status, s.error, s.message = "failed", f"internal error: {e!r}", "failed"
         finally:
+            if not (s.stopping and s.status == "failed"):
+                self._persist_quietly(s)
             self.worker.arm.release(arm)
             self._busy.release()
 
@@ -671,4 +820,9 @@ class RobotCalibration:
         return test_id, ""
 
     def close(self) -> None:
-        self.discard()
+        """The service stops: a run is stopped and the session kept on disk as it stands (interrupted)."""
+        s = self.session
+        if s is not None and s.thread is not None and s.thread.is_alive():
+            s.stopping = True
+            s.cancel.set()
+            s.thread.join(timeout=30.0)

@@ -50,9 +50,11 @@ from service.runtime.calibration_state import CalibrationState
 from service.runtime.cell_runtime import CellRuntime, with_stated_latencies
 from service.runtime.exposure import ExposureControl, ExposureLimits
 from service.runtime.hand_over import HandOver
+from service.runtime.handeye_session import HandEyeSession
 from service.runtime.measure_process import MeasureProcessError
 from service.runtime.processor import CameraProcessor, Pending
 from service.runtime.rig_combiner import RIG, RigCombiner
+from service.runtime.session_store import SessionStore
 from service.runtime.solver_process import SolverProcess
 from service.settings import CameraConfig, ProcessingConfig, Settings
 from service.store.measurements import StorageError
@@ -133,7 +135,12 @@ class Worker:
         self.started_ns = time.monotonic_ns()
         self._processing_ready = threading.Event()  # the cameras fetch from then on
         self.rig = RigCombiner([c.name for c in settings.cameras], settings.processing.rig_sync_tolerance_s)
-        self.handeye_session: Any = None  # service.runtime.handeye_session.HandEyeSession while one runs
+        # the calibration sessions on disk beside the measurements (a worker without storage keeps them
+        # in memory): each change written before it is acknowledged, offered again after a restart
+        self.sessions = SessionStore(
+            settings.resolved_state_dir() / "sessions" if store is not None else None, self.event
+        )
+        self.handeye_session: HandEyeSession | None = self._restored_handeye()
         self.solver = SolverProcess()  # the API's long solves; its child starts with the first session or solve
         self.hand_over = HandOver(
             self.cameras,
@@ -144,6 +151,22 @@ class Worker:
             self._processing_ready,
             self._stop,
         )
+
+    def _restored_handeye(self) -> HandEyeSession | None:
+        state = self.sessions.load("handeye")
+        if state is None:
+            return None
+        try:
+            session = HandEyeSession.restore(state, self.sessions)
+        except (KeyError, TypeError, ValueError) as e:
+            self.sessions.set_aside("handeye", f"{type(e).__name__}: {e}")
+            return None
+        self.event(
+            "info",
+            "session_restored",
+            f"hand-eye session of {session.created_wall} restored with {len(session.samples)} samples",
+        )
+        return session
 
     @property
     def processing_ready(self) -> bool:

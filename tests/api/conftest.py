@@ -35,6 +35,11 @@ def kernels_compiled() -> None:
     FrameMeasurer(scene.reference_camera(), scene.reference_field())
 
 
+# A session's plan runs in the solver process, which the first session starts (a fresh interpreter):
+# ~10 s on a slow 2-core host, beyond the clients' 10 s default
+PLAN_TIMEOUT_S = 60.0
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -26,7 +26,7 @@ from service.runtime.robot_solve import PARAMETERISATION
 from service.settings import load_settings
 from service.store.robot_model import robot_model_to_json
 from service.store.tests_store import TestStore
-from tests.api.conftest import free_port, run_server
+from tests.api.conftest import PLAN_TIMEOUT_S, free_port, run_server
 
 
 @pytest.fixture(scope="module")
@@ -49,16 +49,18 @@ def test_refusals_say_why(cell):
         assert r.status_code == 404 and "start one with POST /calibration/robot/session" in r.json()["message"]
         r = c.post("/calibration/robot/session/solve")
         assert r.status_code == 404
-        r = c.post("/calibration/robot/session", json={"n_poses": 5})
+        r = c.post("/calibration/robot/session", json={"n_poses": 5}, timeout=PLAN_TIMEOUT_S)
         assert r.status_code == 422 and r.json()["reason"] == "poor_motion", r.text
         assert r.json()["message"].startswith("5 poses cannot determine the arm's ~30 kinematic errors")
-        r = c.post("/calibration/robot/session", json={"n_poses": 24, "speed": 3})
+        r = c.post("/calibration/robot/session", json={"n_poses": 24, "speed": 3}, timeout=PLAN_TIMEOUT_S)
         assert r.status_code == 422 and "speed" in r.json()["message"]
         r = c.post("/calibration/robot/verify", json={})
         assert r.status_code == 409 and r.json()["reason"] == "not_calibrated"
         assert r.json()["message"].startswith("no robot model is stored to verify")
         # record mode, as with a real robot: the cell's own circle program is running, so no sample
-        r = c.post("/calibration/robot/session", json={"mode": "record", "n_poses": 12, "n_holdout": 0})
+        r = c.post(
+            "/calibration/robot/session", json={"mode": "record", "n_poses": 12, "n_holdout": 0}, timeout=PLAN_TIMEOUT_S
+        )
         assert r.status_code == 200, r.text
         assert r.json()["mode"] == "record" and len(r.json()["proposals"]) == 12
         r = c.post("/calibration/robot/session/samples", params={"pose": 0})
@@ -115,7 +117,9 @@ def test_session_identifies_the_arm_compensation_reaches_targets_and_verify_find
     sim = cell.worker.cell.cell
     t0 = time.monotonic()
     with httpx_client(cell) as c:
-        r = c.post("/calibration/robot/session", json={"n_poses": 18, "n_holdout": 5, "seed": 1})
+        r = c.post(
+            "/calibration/robot/session", json={"n_poses": 18, "n_holdout": 5, "seed": 1}, timeout=PLAN_TIMEOUT_S
+        )
         assert r.status_code == 200, r.text
         s = r.json()
         assert s["status"] == "planned" and len(s["proposals"]) == 23
@@ -221,7 +225,12 @@ def test_session_identifies_the_arm_compensation_reaches_targets_and_verify_find
         r = c.post("/calibration/robot/verify", json={"mode": "record"})
         assert r.status_code == 200 and r.json()["verdict"] == "ok" and len(r.json()["poses"]) == 1, r.text
         assert r.json()["poses"][0]["stored_pose"] is None
-        assert c.post("/calibration/robot/session", json={"mode": "record", "n_poses": 12}).status_code == 200
+        assert (
+            c.post(
+                "/calibration/robot/session", json={"mode": "record", "n_poses": 12}, timeout=PLAN_TIMEOUT_S
+            ).status_code
+            == 200
+        )
         for _ in range(3):
             r = c.post("/calibration/robot/session/samples")
             assert r.status_code == 200, r.text
@@ -241,7 +250,9 @@ def test_one_workflow_moves_the_arm_at_a_time_and_the_others_are_told_which(cell
     # two programs played into one controller would each measure the other's motion
     _ready(cell)
     with cell.client() as c:
-        r = c.post("/calibration/robot/session", json={"n_poses": 12, "n_holdout": 0, "seed": 2})
+        r = c.post(
+            "/calibration/robot/session", json={"n_poses": 12, "n_holdout": 0, "seed": 2}, timeout=PLAN_TIMEOUT_S
+        )
         assert r.status_code == 200, r.text
         assert c.post("/calibration/handeye/session", json={"n_poses": 4}).status_code == 200
         assert c.post("/calibration/robot/session/run").status_code == 202
@@ -259,7 +270,12 @@ def test_one_workflow_moves_the_arm_at_a_time_and_the_others_are_told_which(cell
         assert r.status_code == 202, r.text
         test_id = r.json()["id"]
         try:
-            assert c.post("/calibration/robot/session", json={"n_poses": 12, "n_holdout": 0}).status_code == 200
+            assert (
+                c.post(
+                    "/calibration/robot/session", json={"n_poses": 12, "n_holdout": 0}, timeout=PLAN_TIMEOUT_S
+                ).status_code
+                == 200
+            )
             for path in ("/calibration/robot/session/move/0", "/calibration/handeye/session/move/1"):
                 r = c.post(path)
                 assert r.status_code == 409 and r.json()["reason"] == "busy", (path, r.text)
