@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import os
 import re
 
 import numpy as np
@@ -180,6 +181,21 @@ def test_write_json_atomic_refuses_nan_and_leaves_the_old_file(tmp_path):
         formats.write_json_atomic(path, {"a": math.inf})
     assert json.loads(path.read_text()) == {"a": 1.0}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["runtime.json"]  # no temporary file left
+
+
+def test_write_json_atomic_syncs_the_file_and_then_its_directory(tmp_path, monkeypatch):
+    synced = []
+    real_fsync = os.fsync
+
+    def fsync(fd):
+        synced.append(os.readlink(f"/proc/self/fd/{fd}"))
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    formats.write_json_atomic(tmp_path / "sub" / "state.json", {"a": 1})
+    # the data under its temporary name, then the directory that holds the rename
+    assert len(synced) == 2 and synced[1] == str(tmp_path / "sub"), synced
+    assert synced[0].startswith(str(tmp_path / "sub" / ".state.json."))
 
 
 def test_a_refused_upload_stores_nothing(tmp_path):

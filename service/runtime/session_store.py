@@ -4,7 +4,8 @@ A hand-eye or robot calibration session is minutes to an hour of robot motion. E
 client is told of (a plan, a sample recorded or removed, a solve, a store) is written before the
 answer: acknowledged means stored, as for measurements. One JSON file per kind in
 ``<state_dir>/sessions/`` (``handeye.json``, ``robot.json``), written through a temporary file,
-fsynced and renamed, then the directory fsynced; a discarded session's file is removed.
+fsynced and renamed, then the directory fsynced (``write_json_atomic``); a discarded session's file
+is removed.
 
 At start the service reads them back. A file it cannot read is not guessed at: it is renamed
 ``<kind>.json.rejected-<time>`` and an event says why, so nothing is lost and no half-read
@@ -25,7 +26,7 @@ import numpy as np
 
 from service.core.results import Reason
 from service.runtime.handeye_session import SessionError
-from service.store.formats import FormatError, read_json, write_json_atomic
+from service.store.formats import FormatError, fsync_dir, read_json, write_json_atomic
 
 SCHEMA = 1
 KINDS = ("handeye", "robot")
@@ -72,7 +73,6 @@ class SessionStore:
         path = self._path(kind)
         try:
             write_json_atomic(path, {"schema": SCHEMA, "kind": kind, "state": plain(state)})
-            _fsync_dir(path.parent)
         except (OSError, FormatError) as e:
             raise SessionError(
                 Reason.storage_unavailable,
@@ -114,13 +114,4 @@ class SessionStore:
         path = self._path(kind)
         with contextlib.suppress(FileNotFoundError):
             path.unlink()
-            _fsync_dir(path.parent)
-
-
-def _fsync_dir(directory: Path) -> None:
-    """The rename or removal itself survives a power cut once its directory is synced."""
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+            fsync_dir(path.parent)

@@ -37,6 +37,8 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
+from service.store.formats import fsync_dir
+
 log = logging.getLogger(__name__)
 
 __all__ = ["CalibrationError", "CalibrationKind", "CalibrationMissing", "CalibrationStore"]
@@ -81,14 +83,6 @@ def _version(version: Any) -> int:
     return version
 
 
-def _fsync_dir(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _write_atomic(path: Path, payload: bytes) -> None:
     """Temp file in the same directory, fsync, rename over ``path``, fsync the directory."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -103,7 +97,7 @@ def _write_atomic(path: Path, payload: bytes) -> None:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
-    _fsync_dir(path.parent)
+    fsync_dir(path.parent)
 
 
 class CalibrationStore:

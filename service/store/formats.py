@@ -121,8 +121,18 @@ def read_json(path: str | os.PathLike[str]) -> Any:
         raise FormatError(f"{path}: malformed JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
 
 
+def fsync_dir(directory: str | os.PathLike[str]) -> None:
+    """Sync a directory: a rename or removal in it survives a power cut only once this returns."""
+    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def write_json_atomic(path: str | os.PathLike[str], data: Any) -> None:
-    """Write JSON through a temporary file, fsync and rename, so a crash never leaves half a file.
+    """Write JSON through a temporary file, fsync, rename and fsync the directory, so a crash never
+    leaves half a file and a power cut after it returns never the old one.
 
     Raises ``FormatError`` (and leaves ``path`` as it was) when ``data`` holds a NaN or an infinity.
     """
@@ -136,6 +146,7 @@ def write_json_atomic(path: str | os.PathLike[str], data: Any) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, p)
+        fsync_dir(p.parent)
     except ValueError as e:
         Path(tmp).unlink(missing_ok=True)
         raise FormatError(f"{p}: not written, the data is not standard JSON ({e})") from None
