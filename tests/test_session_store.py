@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from service.runtime.handeye_session import HandEyeSession, Sample, SessionError
-from service.runtime.robot_calibration import RobotSample, RobotSession, StartParams
+from service.runtime.robot_calibration import RobotSession, StartParams
+from service.runtime.robot_capture import RobotSample
 from service.runtime.session_store import SessionStore, plain
 
 
