@@ -114,6 +114,12 @@ def _ws_first_message(live, timeout_s=5.0):
         return json.loads(ws.recv(timeout=timeout_s))
 
 
+# from plugging the camera back to a fresh pose: a reconnection within 1 s, the simulated camera's
+# render child started, a full frame measured (0.7-0.8 s on the README's host; 3.0 s seen on a slow
+# 2-core VM under the whole suite)
+RECOVERY_S = 5.0
+
+
 @pytest.mark.slow
 def test_a_camera_outage_is_reported_within_a_second_and_no_pose_is_served_as_current(live):
     _wait_ok(live)
@@ -140,10 +146,10 @@ def test_a_camera_outage_is_reported_within_a_second_and_no_pose_is_served_as_cu
             r = c.get("/poses/latest")
             if r.status_code == 200 and r.json()["ok"] and r.json()["stale"] is False:
                 break
-            assert time.monotonic() - t_plug < 3.0, r.text
+            assert time.monotonic() - t_plug < RECOVERY_S, r.text
             time.sleep(0.05)
     assert r.json()["age_s"] < 0.5
-    assert time.monotonic() - t_plug < 3.0
+    assert time.monotonic() - t_plug < RECOVERY_S
 
 
 @pytest.mark.slow

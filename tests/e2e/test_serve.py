@@ -36,6 +36,23 @@ def _wait_health(url: str, proc: subprocess.Popen, timeout_s: float = 180.0) -> 
     raise AssertionError("posecell serve did not become healthy")
 
 
+def _render_ms() -> float:
+    """How long this host takes to render one frame of the simulated cell (median of 3), ms."""
+    import numpy as np
+
+    from service.sim.cell import CellConfig, SimCell
+    from service.sim.render import RenderSettings
+
+    cell, rng = SimCell(CellConfig()), np.random.default_rng(0)
+    cell.render(0.0, rng, RenderSettings(), lit=True)  # the first loads the kernels
+    times = []
+    for k in range(3):
+        t0 = time.perf_counter()
+        cell.render(0.05 * (k + 1), rng, RenderSettings(), lit=True)
+        times.append((time.perf_counter() - t0) * 1e3)
+    return float(np.median(times))
+
+
 def test_serve_runs_the_simulated_cell_from_a_config_file_and_stops_cleanly(tmp_path):
     port = free_port()
     cfg = tmp_path / "posecell.toml"
@@ -61,7 +78,11 @@ def test_serve_runs_the_simulated_cell_from_a_config_file_and_stops_cleanly(tmp_
         # full-frame measurements may still take longer than a period on a busy host: a drop or two)
         while (cam := httpx.get(f"http://127.0.0.1:{port}/status", timeout=5).json()["cameras"]["cam0"])["frames"] < 40:
             time.sleep(0.2)
-        assert cam["seq_gaps"] == 0 and cam["fps"] > 19.0, cam
+        # a gap is a frame the simulated camera could not render within its period: none where the
+        # renderer has room, but where one render takes most of the 50 ms period (40 ms on a slow
+        # 2-core VM, with the suite loading both cores) a late render or two is the simulation's limit
+        allowed = 0 if _render_ms() < 0.6 * 50.0 else 2
+        assert cam["seq_gaps"] <= allowed and cam["fps"] > 19.0, (cam, allowed)
         r = httpx.post(f"http://127.0.0.1:{port}/measure", json={}, headers={"Authorization": "Bearer e2e"}, timeout=10)
         assert r.status_code == 200 and r.json()["ok"] is True
         # the client offers permessage-deflate (the websockets library does by default); the
