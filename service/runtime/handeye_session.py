@@ -118,6 +118,8 @@ class HandEyeSession:
     restored: bool = False  # read back from disk at the service's start
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     store: SessionStoreLike | None = field(default=None, repr=False)
+    # one write at a time, each of the state it read: two requests' writes never land out of order
+    save_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     # --- 1. plan ------------------------------------------------------------------------------
 
@@ -177,9 +179,10 @@ class HandEyeSession:
     def persist(self) -> None:
         """Write the session to its store (raises ``SessionError`` storage_unavailable)."""
         if self.store is not None:
-            with self.lock:
-                state = self.to_state()
-            self.store.save("handeye", state)
+            with self.save_lock:
+                with self.lock:
+                    state = self.to_state()
+                self.store.save("handeye", state)
 
     def discard(self) -> None:
         if self.store is not None:

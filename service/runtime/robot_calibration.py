@@ -212,6 +212,7 @@ class RobotCalibration:
         self.tests = tests  # where each verification is kept (kind "verify"), listed with the accuracy tests
         self.store = getattr(worker, "sessions", None)  # the session on disk (none: in memory only)
         self._busy = threading.Lock()  # one thing moves the arm or solves at a time
+        self._save_lock = threading.Lock()
         self.session: RobotSession | None = self._restored()
 
     # --- kept across restarts ----------------------------------------------------------------------
@@ -234,7 +235,8 @@ class RobotCalibration:
     def _persist(self, s: RobotSession) -> None:
         """Write the session (raises ``SessionError`` storage_unavailable)."""
         if self.store is not None:
-            self.store.save("robot", s.to_state())
+            with self._save_lock:  # one write at a time, each of the state it read: never out of order
+                self.store.save("robot", s.to_state())
 
     def _persist_quietly(self, s: RobotSession) -> str:
         """Write the session where a failure must not stop what called it (a run goes on, a stored
