@@ -44,6 +44,7 @@ from api.routes import (
     handeye,
     health,
     measure,
+    recordings,
     robot_calibration,
     sim,
     tests,
@@ -136,6 +137,7 @@ def create_app(settings: Settings) -> FastAPI:
         calibration,
         sim,
         tests,
+        recordings,
     )
     app.include_router(robot_calibration.verify_alias)  # POST /tests/verify, before /tests/{kind}
     for module in (*routers, compensate):

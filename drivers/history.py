@@ -95,3 +95,11 @@ class RobotHistory:
         with self._lock:
             sel = self._span(t0_host_ns, t1_host_ns)
             return self._t_host[sel], self._t_robot[sel], self._T[sel]  # fancy indexing copies
+
+    def columns_between(
+        self, t0_host_ns: int, t1_host_ns: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`arrays_between` and the joints, q_rad (K, n_joints): a recording's copy of the samples."""
+        with self._lock:
+            sel = self._span(t0_host_ns, t1_host_ns)
+            return self._t_host[sel], self._t_robot[sel], self._T[sel], self._q[sel]

@@ -147,6 +147,7 @@ class CameraChannel:
         self._stop = threading.Event()
         self._stream_when = stream_when
         self._on_frame = on_frame  # (camera name, frame) -> taken
+        self.tap: Callable[[Frame], None] | None = None  # a recording's, sees every frame delivered
         self._thread = threading.Thread(target=self._run, name=f"camera-{name}", daemon=True)
         self._last_seq: int | None = None
         self._connected_ns = time.monotonic_ns()
@@ -273,6 +274,12 @@ class CameraChannel:
                 self._stop.wait(RETRY_MIN_S)
                 continue
             self._account(frame)
+            tap = self.tap
+            if tap is not None:
+                try:
+                    tap(frame)  # queues a reference, never blocks
+                except Exception:  # a recording's bug must not stop acquisition
+                    log.exception("camera %s: recording a frame failed", self.name)
             if self._offer(frame):
                 continue
             if self.slot.put(frame):
