@@ -75,7 +75,7 @@ def test_a_recording_writes_each_frame_losslessly_with_its_times_and_the_robot_b
     channel, events = Channel(), []
     history = robot_history(t0 - 200_000_000, 300)  # 0.6 s of 500 Hz samples around the frames
     recordings = Recordings(tmp_path, {"cam0": channel}, lambda: history, lambda *e: events.append(e))
-    summary = recordings.start(RecordingRequest(max_frames=5, label="first"))
+    summary = recordings.start(RecordingRequest(max_frames=5, label="first", format="png"))
     assert summary["state"] == "recording" and summary["label"] == "first"
     sent = frames(images, 8, t0)
     for f in sent:
@@ -116,7 +116,7 @@ def test_a_recording_writes_each_frame_losslessly_with_its_times_and_the_robot_b
 def test_every_nth_frame_and_a_stop_that_keeps_what_was_accepted(tmp_path, images):
     channel = Channel()
     recordings = Recordings(tmp_path, {"cam0": channel}, lambda: None, lambda *e: None)
-    rec_id = recordings.start(RecordingRequest(every_n=3, max_frames=1000, format="pgm"))["id"]
+    rec_id = recordings.start(RecordingRequest(every_n=3, max_frames=1000))["id"]
     for f in frames(images, 10, time.monotonic_ns()):
         channel.deliver(f)
     summary = recordings.stop(rec_id)
@@ -219,3 +219,29 @@ def test_a_write_that_fails_ends_the_recording_failed_with_the_reason(tmp_path, 
     summary = wait_ended(recordings, summary["id"])
     assert summary["state"] == "failed" and "writing the recording failed" in summary["message"]
     assert channel.tap is None
+
+
+def test_a_stop_ends_the_recording_while_the_camera_keeps_delivering(tmp_path, images):
+    channel, running = Channel(), threading.Event()
+    recordings = Recordings(tmp_path, {"cam0": channel}, lambda: None, lambda *e: None)
+    rec_id = recordings.start(RecordingRequest(max_frames=100_000, format="png"))["id"]  # PNG: slower than the camera
+    running.set()
+
+    def camera() -> None:
+        while running.is_set():
+            channel.deliver(frames(images, 1, time.monotonic_ns())[0])
+            time.sleep(0.005)
+
+    thread = threading.Thread(target=camera)
+    thread.start()
+    try:
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        summary = recordings.stop(rec_id)
+        stopped_in_s = time.monotonic() - t0
+    finally:
+        running.clear()
+        thread.join()
+    assert summary["state"] == "stopped" and stopped_in_s < 5.0  # the frames accepted before it, no more
+    cam = summary["cameras"]["cam0"]
+    assert cam["written"] >= 1 and cam["written"] + cam["dropped"] <= cam["offered"]

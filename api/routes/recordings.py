@@ -74,7 +74,7 @@ class RecordingBody(BaseModel):
     max_frames: int = Field(1000, ge=1, le=1_000_000, description="frames a camera at most")
     max_seconds: float = Field(60.0, gt=0, le=86_400)
     every_n: int = Field(1, ge=1, le=10_000, description="every n-th frame the camera delivers")
-    format: Literal["png", "tiff", "pgm"] = "png"
+    format: Literal["pgm", "png", "tiff"] = "pgm"
     label: str = Field("", max_length=200)
 
 

@@ -4,8 +4,9 @@ A recording is what a user keeps of a cell to look at again: a run to analyse of
 to reproduce, real images to measure ``posecell`` against. It writes, under
 ``<state_dir>/recordings/<id>/``:
 
-- ``<camera>/frame-000001.png`` … : every frame the camera delivered while it ran (or every
-  ``every_n``-th), lossless (PNG, TIFF or PGM; 8 or 16 bit as delivered);
+- ``<camera>/frame-000001.pgm`` … : every frame the camera delivered while it ran (or every
+  ``every_n``-th), lossless, 8 or 16 bit as delivered: PGM by default (written as fast as the disk
+  takes it), PNG or TIFF (half the size, but encoding costs tens of ms a frame);
 - ``<camera>/timestamps.csv``: ``file,t_ns`` with each frame's exposure instant on the host's
   monotonic clock (the robot's clock below), then ``seq``, ``t_device_ns`` (empty without a device
   time), ``exposure_us``: the ``replay`` camera plays the folder as it is
@@ -55,7 +56,9 @@ from service.store.formats import fsync_dir, write_json_atomic
 log = logging.getLogger(__name__)
 
 FORMATS = {"png": ".png", "tiff": ".tiff", "pgm": ".pgm"}
-_ENCODE = {"png": [cv2.IMWRITE_PNG_COMPRESSION, 1], "tiff": [], "pgm": []}  # PNG: speed over size
+# PGM (the default) is the frame's bytes behind a header: ~0.5 ms a 1.3 MP frame on a slow 2-core VM,
+# where PNG (compression 1, half the size: sensor noise compresses poorly) takes ~66 ms and TIFF ~34 ms
+_ENCODE = {"png": [cv2.IMWRITE_PNG_COMPRESSION, 1], "tiff": [], "pgm": []}
 QUEUE_FRAMES = 64  # frames waiting for the writer (~85 MB of 1.3 MP 8-bit frames)
 ROBOT_PULL_S = 0.25  # the robot's samples copied from its history this often
 ROBOT_TAIL_S = 0.1  # after the last frame, the samples still on their way are waited for
@@ -99,7 +102,7 @@ class RecordingRequest:
     max_frames: int = 1000
     max_seconds: float = 60.0
     every_n: int = 1
-    format: str = "png"
+    format: str = "pgm"
     label: str = ""
 
     def check(self, known: list[str]) -> RecordingRequest:
@@ -167,7 +170,7 @@ class Recording:
         """A frame the camera delivered: queued for writing (never blocks), or counted as dropped."""
         with self._lock:
             track = self.tracks[camera]
-            if self._closed or time.monotonic_ns() >= self._deadline_ns:
+            if self._closed or self._stopping.is_set() or time.monotonic_ns() >= self._deadline_ns:
                 return
             track.offered += 1
             if (track.offered - 1) % self.request.every_n or track.accepted >= self.request.max_frames:

@@ -184,3 +184,44 @@ def test_the_hand_eye_card_visits_the_proposals_records_and_applies_the_solution
     page.click("#he-discard")
     page.wait("document.getElementById('he-state').textContent.startsWith('No session')", "the discarded session")
     assert page.exceptions == []
+
+
+def _click_until(page: Page, selector: str, done: str, what: str, tries: int = 3) -> None:
+    """Click, and again if the table was redrawn under the pointer (it refreshes every second)."""
+    for attempt in range(tries):
+        page.click(selector)
+        try:
+            page.wait(done, what, 5)
+            return
+        except AssertionError:
+            if attempt == tries - 1:
+                shown = page.js(
+                    "[document.getElementById('rec-failure').textContent,"
+                    " document.querySelector('#rec-table tbody').innerHTML]"
+                )
+                raise AssertionError(f"{what}: {shown}") from None
+
+
+def test_a_recording_starts_stops_and_is_deleted_from_its_card(page: Page, cell: LiveServer) -> None:
+    page.type("#token", TOKEN)
+    page.wait("document.querySelector('#rec-table tbody').textContent.includes('no recordings yet')", "the empty list")
+    page.type("#rec-frames", "100000")  # ended by the Stop button
+    page.type("#rec-label", "from the card")
+    page.click("#rec-start")
+    running = "document.querySelector('#rec-table tr[data-state=\"recording\"]')"
+    page.wait(f"{running} !== null", "the recording in the table", 10)
+    rec_id = page.js(f"{running}.dataset.id")
+    row = f'#rec-table tr[data-id="{rec_id}"]'
+    page.wait(f"Number(document.querySelector('{row} td:nth-child(4)').textContent) >= 3", "frames written", 20)
+    _click_until(page, f"{row} button", f"document.querySelector('{row}')?.dataset.state === 'stopped'", "the stop")
+    with cell.client() as c:
+        rec = c.get(f"/recordings/{rec_id}").json()
+    assert rec["state"] == "stopped" and rec["label"] == "from the card" and rec["request"]["max_frames"] == 100000
+    written = rec["cameras"]["cam0"]["written"]
+    assert written >= 3 and rec["robot_samples"] > 0
+    page.wait(f"document.querySelector('{row} td:nth-child(4)').textContent === '{written}'", "the count shown", 10)
+    assert page.text(f"{row} td:nth-child(2)") == "from the card"
+    _click_until(page, f"{row} button", f"document.querySelector('{row}') === null", "the deletion")
+    with cell.client() as c:
+        assert c.get(f"/recordings/{rec_id}").status_code == 404
+    assert page.exceptions == []
