@@ -19,6 +19,7 @@ CAMERAS: dict[str, str] = {
 }
 
 ROBOTS: dict[str, str] = {
+    "replay": "drivers.robot.replay:ReplayRobot",
     "sim": "drivers.robot.sim:SimRobot",
     "ur": "drivers.robot.ur:URRobot",
 }

@@ -154,8 +154,8 @@ class CameraConfig(_Section):
 
 
 class RobotConfig(_Section):
-    driver: Literal["sim", "ur", "none"] = "sim"
-    options: dict[str, Any] = {}  # ur: host, frequency_hz, T_flange_tcp
+    driver: Literal["sim", "ur", "replay", "none"] = "sim"
+    options: dict[str, Any] = {}  # ur: host, frequency_hz, T_flange_tcp; replay: source (a recording), loop
     transport_latency_s: float = Field(0.0, ge=0, le=1, description="robot sample transport delay, s, [0, 1]")
 
 

@@ -91,11 +91,12 @@ def test_a_recording_writes_each_frame_losslessly_with_its_times_and_the_robot_b
     assert len(rec.frames) == 5
     for k in range(5):
         assert np.array_equal(rec.frames[k], sent[k].image)
-    assert rec.t_ns.tolist() == [f.t_exposure_host_ns for f in sent[:5]]
+    assert rec.t_ns.tolist() == [f.t_host_ns for f in sent[:5]]  # the arrivals, the robot samples' clock
+    assert rec.t_device_ns.tolist() == [0, 7, 14, 21, 28]
+    assert rec.t_exposure_ns.tolist() == [f.t_exposure_host_ns for f in sent[:5]]
     with (folder / "timestamps.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     assert [int(r["seq"]) for r in rows] == [1, 2, 3, 4, 5]
-    assert [int(r["t_device_ns"]) for r in rows] == [0, 7, 14, 21, 28]
     # the robot: every sample from just before the first exposure to just after the last
     with (tmp_path / summary["id"] / ROBOT_FILE).open() as fh:
         robot = list(csv.DictReader(fh))

@@ -33,11 +33,20 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         worker.cameras,
         lambda: None if worker.robot is None else worker.robot.history,
         worker.event,
+        describe=lambda: _latencies(worker.settings),
     )
     try:
         yield
     finally:
         app.state.recordings.close()
+
+
+def _latencies(settings: Any) -> dict[str, Any]:
+    """The stated delivery delays the pairing used: a replay in step needs the same to pair the same."""
+    return {
+        "robot_transport_latency_s": settings.robot.transport_latency_s,
+        "camera_transport_latency_s": {c.name: c.transport_latency_s for c in settings.cameras},
+    }
 
 
 router = APIRouter(prefix="/recordings", tags=["recordings"], lifespan=lifespan)

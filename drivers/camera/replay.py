@@ -36,6 +36,11 @@ then measures the next two frames in full: over 100 rendered frames 2 % of the f
 made the p99 of ``posecell bench service``; it bounces).
 The device time of a bounce keeps increasing by the recorded intervals, in either direction.
 
+``timing = "recorded"`` (a folder of a posecell recording, ``service/runtime/recorder.py``) plays
+each frame at its recorded time instead, on the clock of :mod:`drivers.replay_clock` that the
+``replay`` robot plays the recording's ``robot.csv`` on: frames and robot samples in step, as
+recorded (``frame_rate_hz`` is then not used; ``loop`` true or false, not ``"bounce"``).
+
 Settings that cannot apply to recorded images: ``gain_db`` other than 0 and a
 hardware trigger raise ``FeatureUnsupported``, as do a pixel format other than
 the recording's and, for ``"sim"``, another exposure than the one rendered
@@ -77,6 +82,7 @@ from drivers.base import (
     Frame,
     TriggerMode,
 )
+from drivers.replay_clock import ReplayClock, clock_of, recording_of
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".pgm")
 TIMESTAMPS_FILE = "timestamps.csv"
@@ -93,6 +99,10 @@ class _Recording:
     meta: list[dict[str, Any]]  # per frame
     pixel_formats: tuple[str, ...]  # the formats it can be delivered as (the first is reported)
     exposure_us: float | None  # the exposure the frames were taken with, when known
+    # a posecell recording's columns beside t_ns (its host arrival): device time and the exposure
+    # instant on the recording host's clock, -1 where the camera had none
+    t_device_ns: NDArray[np.int64] | None = None
+    t_exposure_ns: NDArray[np.int64] | None = None
 
 
 def _read_image(path: Path) -> NDArray[Any]:
@@ -162,7 +172,20 @@ def load_folder(folder: Path) -> _Recording:
             loop_ns = int(t_ns[-1] - t_ns[0] + np.median(np.diff(t_ns)))
     formats = ("Mono8",) if first.dtype == np.uint8 else ("Mono16", "Mono12")
     frames.flags.writeable = False  # lent to every frame as it is (see ReplayCamera._frame)
-    return _Recording(frames, t_ns, loop_ns, [{"file": n} for n in names], formats, None)
+    extra = _recorded_columns(folder / TIMESTAMPS_FILE, names) if t_ns is not None else (None, None)
+    return _Recording(frames, t_ns, loop_ns, [{"file": n} for n in names], formats, None, *extra)
+
+
+def _recorded_columns(path: Path, names: list[str]) -> tuple[NDArray[np.int64] | None, NDArray[np.int64] | None]:
+    """A posecell recording's ``t_device_ns`` and ``t_exposure_host_ns`` columns (-1 where empty), if it has them."""
+    rows = {r["file"]: r for r in csv.DictReader(io.StringIO(path.read_text(encoding="utf-8"))) if r.get("file")}
+    out: list[NDArray[np.int64] | None] = []
+    for column in ("t_device_ns", "t_exposure_host_ns"):
+        try:
+            out.append(np.array([int(rows[n][column] or -1) for n in names], dtype=np.int64))
+        except (KeyError, TypeError, ValueError):  # not a posecell recording's file: the columns are not used
+            out.append(None)
+    return out[0], out[1]
 
 
 class ReplayCamera:
@@ -193,8 +216,15 @@ class ReplayCamera:
         cell_config: dict[str, Any] | None = None,
         render_timeout_s: float = 600.0,
         serial: str | None = None,
+        timing: str = "rate",
     ) -> None:
         self.sim = str(source) == "sim"
+        if timing not in ("rate", "recorded") or (timing == "recorded" and (self.sim or loop == "bounce")):
+            raise ValueError(
+                f'timing must be "rate" or "recorded" (a recording\'s folder, loop true or false), got {timing!r}'
+            )
+        self.timing = timing
+        self._clock: ReplayClock | None = None
         self.source = "sim" if self.sim else Path(source).expanduser()
         if int(n_buffers) < 1 or int(n_frames) < 1:
             raise ValueError(f"n_buffers and n_frames must be at least 1, got {n_buffers} and {n_frames}")
@@ -234,6 +264,12 @@ class ReplayCamera:
         self._closing.clear()
         if not self.sim:
             self._rec = load_folder(Path(self.source))
+            if self.timing == "recorded":
+                if self._rec.t_ns is None:
+                    raise DriverInitError(
+                        f"replay folder {self.source} has no timestamps.csv: it cannot play recorded time"
+                    )
+                self._clock = clock_of(recording_of(Path(self.source)))
         elif self._sensor_hw is None:
             from service.sim.scene import reference_camera  # the only scene a CellConfig names
 
@@ -293,6 +329,14 @@ class ReplayCamera:
                     self._cond.wait(remaining_s)
                 t_ns = self._triggers.popleft()
             j = self._j_next
+        elif self._clock is not None:
+            j, t_ns = self._due_recorded(time.monotonic_ns(), rec)
+            if self._ended(j, rec) or t_ns > deadline:
+                self._timeout(deadline, timeout_s, rec, ended=self._ended(j, rec))
+            wait_s = (t_ns - time.monotonic_ns()) * 1e-9
+            if wait_s > 0:
+                time.sleep(wait_s)
+            self._require_open()
         else:
             k = self._due_slot(time.monotonic_ns())
             j, t_ns = self._j0 + k, self._slot_ns(k)
@@ -312,6 +356,9 @@ class ReplayCamera:
         if self._settings.trigger is TriggerMode.SOFTWARE:
             with self._cond:
                 ready = bool(self._triggers)
+        elif self._clock is not None:
+            rec = self._recording()
+            ready = not self._ended(self._j_next, rec) and self._due_recorded(now, rec)[1] <= now
         else:
             ready = self._slot_ns(self._due_slot(now)) <= now
         if not ready:
@@ -363,6 +410,22 @@ class ReplayCamera:
         current = (now_ns - self._t0_ns) // self._period_ns
         return max(self._k, int(current) - self.n_buffers + 1)
 
+    def _recorded_ns(self, rec: _Recording, j: int) -> int:
+        """Where the ``j``-th frame plays on the replay clock (``timing = "recorded"``)."""
+        assert self._clock is not None and rec.t_ns is not None
+        n = len(rec.frames)
+        return int(self._clock.host_ns(int(rec.t_ns[j % n]), j // n))
+
+    def _due_recorded(self, now_ns: int, rec: _Recording) -> tuple[int, int]:
+        """The next frame on the replay clock, or the oldest still "buffered" when far behind."""
+        j = self._j_next
+        n = len(rec.frames)
+        if self.loop and self._recorded_ns(rec, j) < now_ns - 2 * self._clock.span_ns:  # type: ignore[union-attr]
+            j += ((now_ns - self._recorded_ns(rec, j)) // self._clock.span_ns - 1) * n  # type: ignore[union-attr]
+        while not self._ended(j + self.n_buffers, rec) and self._recorded_ns(rec, j + self.n_buffers) <= now_ns:
+            j += 1
+        return j, self._recorded_ns(rec, j)
+
     def _ended(self, j: int, rec: _Recording) -> bool:
         return not self.loop and j >= len(rec.frames)
 
@@ -380,12 +443,20 @@ class ReplayCamera:
         else:
             x, y, w, h = self._settings.roi
             image = np.array(rec.frames[i, y : y + h, x : x + w])  # a contiguous copy, as a camera's ROI
-        t_device = t_ns
+        t_device: int | None = t_ns
         if rec.t_ns is not None:
             t_device = int(rec.t_ns[0]) + elapsed_ns
+        t_exposure: int | None = t_ns
+        if self._clock is not None:  # the recorded stamps, on the replay clock: the service aligns them as it did live
+            t_device, t_exposure = None, None
+            loop_ns = p * self._clock.span_ns
+            if rec.t_device_ns is not None and rec.t_device_ns[i] >= 0:
+                t_device = int(rec.t_device_ns[i]) + loop_ns
+            if rec.t_exposure_ns is not None and rec.t_exposure_ns[i] >= 0:
+                t_exposure = int(self._clock.host_ns(int(rec.t_exposure_ns[i]), p))
         exposure = rec.exposure_us if rec.exposure_us is not None else self._settings.exposure_us or 0.0
         meta = {**rec.meta[i], "replay_index": i, "replay_pass": p}
-        return Frame(image, j & 0xFFFF_FFFF, t_ns, t_device, exposure, t_exposure_host_ns=t_ns, meta=meta)
+        return Frame(image, j & 0xFFFF_FFFF, t_ns, t_device, exposure, t_exposure_host_ns=t_exposure, meta=meta)
 
     def _index(self, rec: _Recording, j: int) -> tuple[int, int, int]:
         """The ``j``-th frame delivered: (its index in the recording, its pass, the recorded time since

@@ -7,9 +7,11 @@ to reproduce, real images to measure ``posecell`` against. It writes, under
 - ``<camera>/frame-000001.pgm`` … : every frame the camera delivered while it ran (or every
   ``every_n``-th), lossless, 8 or 16 bit as delivered: PGM by default (written as fast as the disk
   takes it), PNG or TIFF (half the size, but encoding costs tens of ms a frame);
-- ``<camera>/timestamps.csv``: ``file,t_ns`` with each frame's exposure instant on the host's
-  monotonic clock (the robot's clock below), then ``seq``, ``t_device_ns`` (empty without a device
-  time), ``exposure_us``: the ``replay`` camera plays the folder as it is
+- ``<camera>/timestamps.csv``: ``file,t_ns`` with each frame's arrival on the host's monotonic
+  clock (the robot samples' clock below), then ``seq``, ``t_device_ns`` and
+  ``t_exposure_host_ns`` (each empty where the camera gave none), ``exposure_us``: the raw stamps,
+  so that a replay in step with the robot (``timing = "recorded"``) lets the service align the
+  exposures as it did live. The ``replay`` camera plays the folder as it is
   (``options = { source = "<that folder>" }``) and ``posecell calibrate camera`` reads it;
 - ``robot.csv``: every robot sample over the same span, ``t_host_ns,t_robot_s`` then
   ``T_base_flange`` as ``x_mm,y_mm,z_mm,rx_rad,ry_rad,rz_rad`` (a rotation vector) and the joints
@@ -65,7 +67,7 @@ ROBOT_TAIL_S = 0.1  # after the last frame, the samples still on their way are w
 MIN_FREE_BYTES = 512 * 2**20
 MANIFEST = "recording.json"
 ROBOT_FILE = "robot.csv"
-TIMESTAMPS_HEADER = ("file", "t_ns", "seq", "t_device_ns", "exposure_us")
+TIMESTAMPS_HEADER = ("file", "t_ns", "seq", "t_device_ns", "t_exposure_host_ns", "exposure_us")
 ROBOT_HEADER = (
     "t_host_ns",
     "t_robot_s",
@@ -152,6 +154,7 @@ class Recording:
         self.ended_wall: str | None = None
         self.tracks = {name: _CameraTrack() for name in request.cameras}
         self.robot_samples = 0
+        self.settings: dict[str, Any] = {}  # what the service was set to (the manifest keeps it)
         self._history, self._min_free, self._release, self._on_end = history, min_free_bytes, release, on_end
         self._queue: queue.Queue[tuple[str, Frame] | None] = queue.Queue(QUEUE_FRAMES)
         self._deadline_ns = time.monotonic_ns() + int(request.max_seconds * 1e9)
@@ -182,7 +185,7 @@ class Recording:
                 return
             track.accepted += 1
             if self._robot_from_ns is None:  # the robot's record starts a little before the first exposure
-                self._robot_from_ns = _t_ns(frame) - int(ROBOT_TAIL_S * 1e9)
+                self._robot_from_ns = frame.t_host_ns - int(ROBOT_TAIL_S * 1e9)
 
     # --- control -------------------------------------------------------------------------------
 
@@ -231,6 +234,7 @@ class Recording:
             "request": {**asdict(self.request), "cameras": list(self.request.cameras)},
             "cameras": cameras,
             "robot_samples": self.robot_samples,
+            "settings": self.settings,
         }
 
     # --- the writer -----------------------------------------------------------------------------
@@ -287,9 +291,10 @@ class Recording:
         if not ok:
             raise OSError(f"the frame could not be encoded as {self.request.format}")
         (self.folder / camera / name).write_bytes(data.tobytes())
-        t_ns = _t_ns(frame)
+        t_ns = frame.t_host_ns
         device = "" if frame.t_device_ns is None else str(frame.t_device_ns)
-        writer.writerow((name, t_ns, frame.seq, device, f"{frame.exposure_us:g}"))
+        exposure = "" if frame.t_exposure_host_ns is None else str(frame.t_exposure_host_ns)
+        writer.writerow((name, t_ns, frame.seq, device, exposure, f"{frame.exposure_us:g}"))
         track.written = k
         if not track.shape:
             track.shape, track.dtype = list(frame.image.shape), str(frame.image.dtype)
@@ -330,11 +335,6 @@ class Recording:
         self._on_end(self)
 
 
-def _t_ns(frame: Frame) -> int:
-    """The frame's exposure instant on the host's monotonic clock (the robot samples' clock)."""
-    return int(frame.t_exposure_host_ns if frame.t_exposure_host_ns is not None else frame.t_host_ns)
-
-
 class Recordings:
     """The recordings of one service: started on its cameras, listed from its folder, stopped, deleted."""
 
@@ -345,8 +345,10 @@ class Recordings:
         history: Callable[[], RobotHistory | None],
         on_event: Callable[[str, str, str], None],
         min_free_bytes: int = MIN_FREE_BYTES,
+        describe: Callable[[], dict[str, Any]] = dict,
     ) -> None:
         self.root, self._cameras, self._history, self._event = root, cameras, history, on_event
+        self._describe = describe  # the settings a faithful replay needs (the stated latencies), into the manifest
         self.min_free_bytes = min_free_bytes
         self._active: dict[str, Recording] = {}
         self._lock = threading.Lock()
@@ -373,6 +375,7 @@ class Recordings:
             rec = Recording(
                 rec_id, self.root / rec_id, req, self._history, self.min_free_bytes, self._release, self._ended
             )
+            rec.settings = self._describe()
             try:
                 rec.start()
             except OSError as e:

@@ -81,8 +81,27 @@ def _ur_standin() -> Iterator[Any]:
             robot.close()
 
 
+@contextmanager
+def _replay_robot() -> Iterator[Any]:
+    """The replay robot, looping a 5-frame recording's 500 Hz samples."""
+    import tempfile
+    from pathlib import Path
+
+    from drivers.replay_clock import forget
+    from tests.drivers.recording import make_recording
+
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = make_recording(Path(tmp) / "20261205-101500")
+        robot = make_robot("replay", source=str(folder))
+        try:
+            yield robot
+        finally:
+            robot.close()
+            forget(folder)
+
+
 def robot_factories() -> dict[str, Callable[[], AbstractContextManager[Any]] | None]:
-    out: dict[str, Callable[[], AbstractContextManager[Any]] | None] = {"sim": _sim_robot}
+    out: dict[str, Callable[[], AbstractContextManager[Any]] | None] = {"sim": _sim_robot, "replay": _replay_robot}
     try:
         import rtde_receive  # noqa: F401 -- only to know whether the UR driver can run here
     except ImportError as e:
