@@ -58,6 +58,7 @@ async def start(app: FastAPI, stack: contextlib.AsyncExitStack, settings: Settin
             app.state.token,
             lambda: health_document(app, worker, hub),
             tests=lambda: getattr(app.state, "tests", None),  # the tests' router brings its runner up after this
+            recordings=lambda: getattr(app.state, "recordings", None),  # so does the recordings' router
             cert_dir=settings.resolved_state_dir() / "opcua",
         )
         opcua.start()

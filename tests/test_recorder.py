@@ -225,7 +225,8 @@ def test_a_write_that_fails_ends_the_recording_failed_with_the_reason(tmp_path, 
 def test_a_stop_ends_the_recording_while_the_camera_keeps_delivering(tmp_path, images):
     channel, running = Channel(), threading.Event()
     recordings = Recordings(tmp_path, {"cam0": channel}, lambda: None, lambda *e: None)
-    rec_id = recordings.start(RecordingRequest(max_frames=100_000, format="png"))["id"]  # PNG: slower than the camera
+    # PNG: slower than this camera; the limits far off, so only the stop can end it
+    rec_id = recordings.start(RecordingRequest(max_frames=100_000, max_seconds=600.0, format="png"))["id"]
     running.set()
 
     def camera() -> None:
@@ -243,6 +244,25 @@ def test_a_stop_ends_the_recording_while_the_camera_keeps_delivering(tmp_path, i
     finally:
         running.clear()
         thread.join()
-    assert summary["state"] == "stopped" and stopped_in_s < 5.0  # the frames accepted before it, no more
+    # the frames queued before it are written (at most QUEUE_FRAMES PNG encodings), none after it
+    assert summary["state"] == "stopped" and stopped_in_s < 30.0, stopped_in_s
+    assert recordings.get(rec_id)["cameras"]["cam0"]["offered"] == summary["cameras"]["cam0"]["offered"]
     cam = summary["cameras"]["cam0"]
     assert cam["written"] >= 1 and cam["written"] + cam["dropped"] <= cam["offered"]
+
+
+def test_a_request_from_json_is_checked_field_by_field():
+    assert RecordingRequest.from_dict({}) == RecordingRequest()
+    assert RecordingRequest.from_dict({"cameras": ["cam0"], "max_frames": 10, "max_seconds": 2.5}) == RecordingRequest(
+        cameras=("cam0",), max_frames=10, max_seconds=2.5
+    )
+    for bad, words in [
+        ({"frames": 3}, "unknown parameter 'frames'"),
+        ({"cameras": "cam0"}, "list of camera names"),
+        ({"max_frames": "10"}, "whole numbers"),
+        ({"every_n": 2.5}, "whole numbers"),
+        ({"max_frames": True}, "whole numbers"),
+    ]:
+        with pytest.raises(RecordingError, match=words) as e:
+            RecordingRequest.from_dict(bad)
+        assert e.value.kind == "bad_input"

@@ -19,6 +19,8 @@ programs that address nodes by id)::
                 ExposureTime
         StartTest(Kind String, Parameters String) -> Ok, Reason, Message, TestId, Status
         StopTest(TestId Int64) -> Ok, Reason, Message, Status      (the accuracy tests, as /tests)
+        StartRecording(Parameters String) -> Ok, Reason, Message, RecordingId, State
+        StopRecording(RecordingId String) -> Ok, Reason, Message, State  (recordings, as /recordings)
         Cameras/<camera>
             ResultSeq Int64 (frame number, -1: none), ResultOk Boolean, Reason String,
             Message String, T_base_flange_measured Double[16] (row-major, mm), DeviationPosition_mm
@@ -64,6 +66,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from service.core.measurement import Measurement
 from service.core.results import Failure, Reason
+from service.runtime.recorder import RecordingError, RecordingRequest
 from service.runtime.rig_combiner import RIG
 from service.runtime.worker import Worker
 from service.settings import OpcUaConfig
@@ -181,6 +184,23 @@ START_TEST_OUTPUTS = [
 ]
 STOP_TEST_INPUTS = [_arg("TestId", V.Int64, "the test to finish (record mode) or cancel (program mode)")]
 STOP_TEST_OUTPUTS = [*_TEST_OUTCOME, _arg("Status", V.String, "the test's status after the stop")]
+START_RECORDING_INPUTS = [
+    _arg("Parameters", V.String, 'POST /recordings\'s body as JSON, e.g. {"max_frames": 200}; empty: the defaults'),
+]
+START_RECORDING_OUTPUTS = [
+    *_TEST_OUTCOME,
+    _arg("RecordingId", V.String, "the recording's id (GET /recordings/{id}); empty: none"),
+    _arg("State", V.String, "recording | complete | stopped | failed"),
+]
+STOP_RECORDING_INPUTS = [_arg("RecordingId", V.String, "the recording to end now")]
+STOP_RECORDING_OUTPUTS = [*_TEST_OUTCOME, _arg("State", V.String, "the recording's state after the stop")]
+# a recording's refusal kinds as the service's reasons
+_RECORDING_REASONS = {
+    "not_found": Reason.not_found,
+    "busy": Reason.busy,
+    "bad_input": Reason.bad_input,
+    "storage": Reason.storage_unavailable,
+}
 
 
 def result_values(m: Measurement | None) -> dict[str, Any]:
@@ -237,11 +257,13 @@ class OpcUaServer:
         health: Callable[[], Mapping[str, Any]],
         tests: Callable[[], Any] = lambda: None,
         cert_dir: Path | None = None,
+        recordings: Callable[[], Any] = lambda: None,
     ) -> None:
         self.config = config
         self._cert_dir = cert_dir  # the server's key and self-signed certificate; None: none (password in clear)
         self._worker = worker
         self._tests = tests  # the accuracy tests' runner (start(kind, params), stop(id)), once it is up
+        self._recordings = recordings  # the recordings (start(request), stop(id)), once they are up
         self._token = token
         self._health = health
         self._thread: threading.Thread | None = None
@@ -351,6 +373,8 @@ class OpcUaServer:
         for name, func, ins, outs in (
             ("StartTest", self._start_test, START_TEST_INPUTS, START_TEST_OUTPUTS),
             ("StopTest", self._stop_test, STOP_TEST_INPUTS, STOP_TEST_OUTPUTS),
+            ("StartRecording", self._start_recording, START_RECORDING_INPUTS, START_RECORDING_OUTPUTS),
+            ("StopRecording", self._stop_recording, STOP_RECORDING_INPUTS, STOP_RECORDING_OUTPUTS),
         ):
             await cell.add_method(ua.NodeId(f"Posecell.{name}", ns), ua.QualifiedName(name, ns), func, ins, outs)
         cameras = await cell.add_folder(ua.NodeId("Posecell.Cameras", ns), ua.QualifiedName("Cameras", ns))
@@ -486,6 +510,48 @@ class OpcUaServer:
                 raise
             return str(reason), str(getattr(e, "message", e))
         return answer
+
+    # --- recordings (POST /recordings's) ------------------------------------------------------------
+
+    async def _start_recording(self, parent: Any, *args: Any) -> Any:
+        text = str(args[0].Value or "") if args else ""
+        try:
+            params = json.loads(text) if text.strip() else {}
+            if not isinstance(params, dict):
+                raise ValueError("not a JSON object")
+            request = RecordingRequest.from_dict(params)
+        except ValueError as e:
+            return _recording_outputs(False, str(Reason.bad_input), f"Parameters must be a JSON object: {e}", "", "")
+        except RecordingError as e:
+            return _recording_outputs(False, str(_RECORDING_REASONS[e.kind]), e.message, "", "")
+        done = await self._call_recordings("start", request)
+        if isinstance(done, tuple):
+            return _recording_outputs(False, *done, "", "")
+        return _recording_outputs(True, "", "", str(done["id"]), str(done["state"]))
+
+    async def _stop_recording(self, parent: Any, *args: Any) -> Any:
+        rec_id = str(args[0].Value or "") if args else ""
+        done = await self._call_recordings("stop", rec_id)
+        if isinstance(done, tuple):
+            return _recording_outputs(False, *done, None, "")
+        return _recording_outputs(True, "", str(done.get("message") or ""), None, str(done["state"]))
+
+    async def _call_recordings(self, method: str, *args: Any) -> dict[str, Any] | tuple[str, str]:
+        recordings = self._recordings()
+        if recordings is None:
+            return str(Reason.initializing), "the recordings are not available (yet)"
+        try:  # start makes folders, stop waits for the writer: both off this loop
+            answer: dict[str, Any] = await asyncio.to_thread(getattr(recordings, method), *args)
+        except RecordingError as e:
+            return str(_RECORDING_REASONS[e.kind]), e.message
+        return answer
+
+
+def _recording_outputs(ok: bool, reason: str, message: str, rec_id: str | None, state: str) -> list[Any]:
+    values = [ua.Variant(ok, V.Boolean), ua.Variant(reason, V.String), ua.Variant(message, V.String)]
+    if rec_id is not None:
+        values.append(ua.Variant(rec_id, V.String))
+    return [*values, ua.Variant(state, V.String)]
 
 
 def _test_outputs(ok: bool, reason: str, message: str, test_id: int | None, status: str) -> list[Any]:

@@ -107,6 +107,34 @@ class RecordingRequest:
     format: str = "pgm"
     label: str = ""
 
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> RecordingRequest:
+        """A request from JSON (the PLC's parameters); raises ``RecordingError`` (bad_input) saying what is wrong."""
+        unknown = sorted(set(d) - {"cameras", "max_frames", "max_seconds", "every_n", "format", "label"})
+        if unknown:
+            raise RecordingError("bad_input", f"unknown parameter {unknown[0]!r}")
+        cameras = d.get("cameras", [])
+        if not isinstance(cameras, list) or not all(isinstance(c, str) for c in cameras):
+            raise RecordingError("bad_input", "cameras must be a list of camera names")
+        try:
+            numbers = {k: d[k] for k in ("max_frames", "every_n", "max_seconds") if k in d}
+            if any(isinstance(v, bool) or not isinstance(v, int | float) for v in numbers.values()):
+                raise TypeError
+            if any(k != "max_seconds" and not float(v).is_integer() for k, v in numbers.items()):
+                raise TypeError
+        except TypeError:
+            raise RecordingError(
+                "bad_input", "max_frames and every_n must be whole numbers, max_seconds a number"
+            ) from None
+        return cls(
+            tuple(cameras),
+            int(d.get("max_frames", cls.max_frames)),
+            float(d.get("max_seconds", cls.max_seconds)),
+            int(d.get("every_n", cls.every_n)),
+            str(d.get("format", cls.format)),
+            str(d.get("label", cls.label))[:200],
+        )
+
     def check(self, known: list[str]) -> RecordingRequest:
         """The request with its cameras resolved; raises ``RecordingError`` saying what is wrong."""
         if self.format not in FORMATS:

@@ -225,6 +225,38 @@ def test_start_and_stop_an_accuracy_test_like_post_tests(live: LiveServer):
         assert http.get(f"/tests/{test_id}").json()["status"] == stopped[3]
 
 
+def test_the_plc_starts_and_stops_a_recording_like_post_recordings(live: LiveServer):
+    async def scenario() -> tuple[list[Any], ...]:
+        client = await _client(live, "posecell", TOKEN)
+        anonymous = await _client(live)
+        try:
+            ns = await client.get_namespace_index(NS)
+            cell, cell_anon = (c.get_node(ua.NodeId("Posecell", ns)) for c in (client, anonymous))
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                await cell_anon.call_method(f"{ns}:StartRecording", "")
+            started = await cell.call_method(f"{ns}:StartRecording", '{"max_frames": 1000, "label": "from the PLC"}')
+            again = await cell.call_method(f"{ns}:StartRecording", "")
+            bad = await cell.call_method(f"{ns}:StartRecording", '{"frames": 3}')
+            await asyncio.sleep(1.0)
+            stopped = await cell.call_method(f"{ns}:StopRecording", started[3])
+            unknown = await cell.call_method(f"{ns}:StopRecording", "20990101-000000")
+            return started, again, bad, stopped, unknown
+        finally:
+            await client.disconnect()
+            await anonymous.disconnect()
+
+    started, again, bad, stopped, unknown = _run(scenario())
+    ok, reason, _, rec_id, state = started
+    assert ok and reason == "" and rec_id and state == "recording", started
+    assert again[:2] == [False, "busy"] and "being recorded already" in again[2], again
+    assert bad[:2] == [False, "bad_input"] and "unknown parameter 'frames'" in bad[2], bad
+    assert stopped[0] is True and stopped[3] == "stopped", stopped
+    assert unknown[:2] == [False, "not_found"], unknown
+    with live.client() as http:
+        rec = http.get(f"/recordings/{rec_id}").json()
+    assert rec["state"] == "stopped" and rec["label"] == "from the PLC" and rec["cameras"]["cam0"]["written"] >= 3
+
+
 def test_an_unplugged_camera_is_a_fault_with_its_code_and_measure_says_why(live: LiveServer):
     async def read_fault(client: Client) -> tuple[bool, int, str, str]:
         names = ("Fault", "FaultCode", "FaultMessage", "Cameras.cam0.CameraState")
