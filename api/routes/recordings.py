@@ -61,20 +61,12 @@ def get_recordings(request: Request) -> Recordings:
 
 RecordingsDep = Annotated[Recordings, Depends(get_recordings)]
 
-_REASONS = {
-    "not_found": (Reason.not_found, None),
-    "busy": (Reason.busy, 409),
-    "bad_input": (Reason.bad_input, None),
-    "storage": (Reason.storage_unavailable, None),
-}
-
 
 def _call(fn: Any, *args: Any) -> Any:
     try:
         return fn(*args)
     except RecordingError as e:
-        reason, status = _REASONS[e.kind]
-        raise ApiError(reason, e.message, status=status) from None
+        raise ApiError(e.reason, e.message, status=409 if e.reason is Reason.busy else None) from None
 
 
 class RecordingBody(BaseModel):

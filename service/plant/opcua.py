@@ -194,13 +194,6 @@ START_RECORDING_OUTPUTS = [
 ]
 STOP_RECORDING_INPUTS = [_arg("RecordingId", V.String, "the recording to end now")]
 STOP_RECORDING_OUTPUTS = [*_TEST_OUTCOME, _arg("State", V.String, "the recording's state after the stop")]
-# a recording's refusal kinds as the service's reasons
-_RECORDING_REASONS = {
-    "not_found": Reason.not_found,
-    "busy": Reason.busy,
-    "bad_input": Reason.bad_input,
-    "storage": Reason.storage_unavailable,
-}
 
 
 def result_values(m: Measurement | None) -> dict[str, Any]:
@@ -523,7 +516,7 @@ class OpcUaServer:
         except ValueError as e:
             return _recording_outputs(False, str(Reason.bad_input), f"Parameters must be a JSON object: {e}", "", "")
         except RecordingError as e:
-            return _recording_outputs(False, str(_RECORDING_REASONS[e.kind]), e.message, "", "")
+            return _recording_outputs(False, str(e.reason), e.message, "", "")
         done = await self._call_recordings("start", request)
         if isinstance(done, tuple):
             return _recording_outputs(False, *done, "", "")
@@ -543,22 +536,25 @@ class OpcUaServer:
         try:  # start makes folders, stop waits for the writer: both off this loop
             answer: dict[str, Any] = await asyncio.to_thread(getattr(recordings, method), *args)
         except RecordingError as e:
-            return str(_RECORDING_REASONS[e.kind]), e.message
+            return str(e.reason), e.message
         return answer
 
 
-def _recording_outputs(ok: bool, reason: str, message: str, rec_id: str | None, state: str) -> list[Any]:
+def _outcome(ok: bool, reason: str, message: str, ident: ua.Variant | None, state: str) -> list[Any]:
+    """A request method's outputs: Ok, Reason, Message, the test's or recording's id (only where the
+    method returns one), its status."""
     values = [ua.Variant(ok, V.Boolean), ua.Variant(reason, V.String), ua.Variant(message, V.String)]
-    if rec_id is not None:
-        values.append(ua.Variant(rec_id, V.String))
+    if ident is not None:
+        values.append(ident)
     return [*values, ua.Variant(state, V.String)]
 
 
+def _recording_outputs(ok: bool, reason: str, message: str, rec_id: str | None, state: str) -> list[Any]:
+    return _outcome(ok, reason, message, None if rec_id is None else ua.Variant(rec_id, V.String), state)
+
+
 def _test_outputs(ok: bool, reason: str, message: str, test_id: int | None, status: str) -> list[Any]:
-    values = [ua.Variant(ok, V.Boolean), ua.Variant(reason, V.String), ua.Variant(message, V.String)]
-    if test_id is not None:
-        values.append(ua.Variant(test_id, V.Int64))
-    return [*values, ua.Variant(status, V.String)]
+    return _outcome(ok, reason, message, None if test_id is None else ua.Variant(test_id, V.Int64), status)
 
 
 def _outputs(

@@ -53,6 +53,7 @@ import numpy as np
 from drivers.base import Frame
 from drivers.history import RobotHistory
 from service.core.geometry.so3 import rotvec_from_T
+from service.core.results import Reason
 from service.store.formats import fsync_dir, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -88,6 +89,19 @@ class RecordingError(Exception):
     def __init__(self, kind: str, message: str) -> None:
         super().__init__(message)
         self.kind, self.message = kind, message
+
+    @property
+    def reason(self) -> Reason:
+        """The service's reason for it (the API's and the OPC UA methods')."""
+        return _REASON_OF_KIND[self.kind]
+
+
+_REASON_OF_KIND = {
+    "not_found": Reason.not_found,
+    "busy": Reason.busy,
+    "bad_input": Reason.bad_input,
+    "storage": Reason.storage_unavailable,
+}
 
 
 class Tappable(Protocol):
