@@ -121,7 +121,10 @@ def test_a_replayed_session_gives_each_frame_the_flange_and_deviation_it_had_liv
     finally:
         servers.close()
     clock = clock_of(folder)
-    compared, flange_mm, deviation_mm = 0, [], []
+    # the robot's speed along the recording, on its own clock (t_robot_s; the host stamps come in batches)
+    robot = np.loadtxt(folder / "robot.csv", delimiter=",", skiprows=1, usecols=(1, 2, 3, 4))
+    speed_mm_s = float(np.max(np.linalg.norm(np.diff(robot[:, 1:], axis=0), axis=1) / np.diff(robot[:, 0])))
+    compared, flange_mm, deviation_mm, dt_ns = 0, [], [], []
     for r in collector.results:
         if not r.get("ok") or r.get("deviation") is None:
             continue
@@ -137,10 +140,17 @@ def test_a_replayed_session_gives_each_frame_the_flange_and_deviation_it_had_liv
         # the controller's flange at the exposure: the same samples, interpolated at the same instant
         t_replay, t_live_flange = np.array(r["T_base_flange"])[:3, 3], np.array(live["T_base_flange"])[:3, 3]
         flange_mm.append(float(np.abs(t_replay - t_live_flange).max()))
+        dt_ns.append(abs(int(live_t[k]) - t_live))
         deviation_mm.append(abs(r["deviation"]["position_mm"] - live["deviation"]["position_mm"]))
     assert compared >= 20, f"{compared} replayed results compared of {len(collector.results)}"
+    flange, deviation = np.array(flange_mm), np.array(deviation_mm)
     # the controller's flange at the exposure: the same samples, interpolated at the service's estimate
-    # of the same instant (a fresh clock alignment in the replay: a few µs, the first frames more)
-    assert np.median(flange_mm) < 0.005 and np.max(flange_mm) < 0.05, (np.median(flange_mm), np.max(flange_mm))
-    # the same image measured again (ROI tracking or a full frame, as the replay's own tracking goes)
-    assert np.median(deviation_mm) < 0.005 and np.max(deviation_mm) < 0.05, (np.median(deviation_mm), max(deviation_mm))
+    # of the same instant. The replay aligns the camera's and the robot's clocks afresh: the exposures
+    # come out µs apart, the robot's stamps some 10-60 µs on a loaded host, so the flanges differ by the
+    # robot's travel in that time (at most 0.1 ms in the median, 0.5 ms at worst) and no more
+    assert np.median(dt_ns) < 100_000, np.median(dt_ns)
+    assert np.median(flange) < speed_mm_s * 1e-4 + 0.001, (np.median(flange), speed_mm_s)
+    assert np.max(flange) < speed_mm_s * 5e-4 + 0.001, (np.max(flange), speed_mm_s)
+    # the same image measured again (ROI tracking or a full frame, as the replay's own tracking goes):
+    # the deviation differs by the flange's difference and the measurement's
+    assert np.median(deviation - flange) < 0.005 and np.max(deviation - flange) < 0.05, (deviation, flange)
