@@ -208,49 +208,18 @@ def _boxes_overlap(u0: NDArray[np.intp], v0: NDArray[np.intp], u1: NDArray[np.in
     return bool(np.any((u0[j] <= u1[i]) & (u0[i] <= u1[j]) & (v0[j] <= v1[i]) & (v0[i] <= v1[j])))
 
 
-def _blur(signal: NDArray[np.float32], sigma_px: float, boxes: NDArray[np.intp] | None) -> NDArray[np.float32]:
-    """``signal`` blurred by the Gaussian PSF (cv2, +-3 sigma, borders reflected), in place or anew.
-
-    With the boxes that hold all the light (rows u0, v0, u1, v1), only about them: a pixel further
-    than the kernel's reach from every box stays dark, and one within reach of a box reads only the
-    box grown by twice the reach. The same values as the whole frame's blur at a fifth of its
-    time (~230 targets in a 1.3 MP frame: the blur was a fifth of a moving camera's render)."""
-    k = 2 * int(np.ceil(3.0 * sigma_px)) + 1  # cv2 normalises the kernel
-    reach, (height, width) = k // 2, signal.shape
-    if boxes is not None:
-        grown = boxes + np.array([-2 * reach, -2 * reach, 2 * reach, 2 * reach])
-        area = np.sum((grown[:, 2] - grown[:, 0] + 1) * (grown[:, 3] - grown[:, 1] + 1))
-        if area < signal.size // 4:  # else the whole frame at once is quicker
-            out = np.zeros_like(signal)
-            for u0, v0, u1, v1 in boxes.tolist():
-                # the source: the box grown by twice the reach (at the frame's edge the same reflection)
-                su0, sv0 = max(u0 - 2 * reach, 0), max(v0 - 2 * reach, 0)
-                su1, sv1 = min(u1 + 2 * reach, width - 1), min(v1 + 2 * reach, height - 1)
-                part = cv2.GaussianBlur(
-                    signal[sv0 : sv1 + 1, su0 : su1 + 1], (k, k), sigma_px, borderType=cv2.BORDER_REFLECT_101
-                )
-                # kept: the box grown by the reach (further out, the source's own edge was reflected)
-                du0, dv0 = max(u0 - reach, 0), max(v0 - reach, 0)
-                du1, dv1 = min(u1 + reach, width - 1), min(v1 + reach, height - 1)
-                out[dv0 : dv1 + 1, du0 : du1 + 1] = part[dv0 - sv0 : dv1 - sv0 + 1, du0 - su0 : du1 - su0 + 1]
-            return out
-    # in place: every fresh full-frame buffer costs ~1 ms of page faults
-    return cv2.GaussianBlur(signal, (k, k), sigma_px, dst=signal, borderType=cv2.BORDER_REFLECT_101)
-
-
 def _compose(
-    signal: NDArray[np.float32],
-    settings: RenderSettings,
-    rng: np.random.Generator | None,
-    boxes: NDArray[np.intp] | None = None,
+    signal: NDArray[np.float32], settings: RenderSettings, rng: np.random.Generator | None
 ) -> NDArray[np.generic]:
-    """Blur, glow, gradient, occluders, background, noise, saturation and quantisation (``boxes``: :func:`_blur`)."""
+    """Blur, glow, gradient, occluders, background, noise, saturation and quantisation."""
     s = settings
     f32 = np.float32
     height, width = signal.shape
     img = signal
     if s.blur_sigma_px > 0:
-        img = _blur(signal, s.blur_sigma_px, boxes)
+        k = 2 * int(np.ceil(3.0 * s.blur_sigma_px)) + 1  # +-3 sigma; cv2 normalises the kernel
+        # in place: every fresh full-frame buffer costs ~1 ms of page faults
+        img = cv2.GaussianBlur(signal, (k, k), s.blur_sigma_px, dst=signal, borderType=cv2.BORDER_REFLECT_101)
     if s.gradient_dn != 0:
         img += (np.arange(width, dtype=f32) * f32(s.gradient_dn / max(width - 1, 1)))[None, :]
     if s.lit and s.hot_spot_dn > 0:
@@ -277,11 +246,7 @@ def _compose(
         epd = s.electrons_per_dn
         u16 = rng.integers(0, 65536, size=img.shape, dtype=np.uint16)
         z_table = _normal_table() * f32(1.0 / np.sqrt(epd))
-        # the light and the glow are >= 0, occluders scale toward 0: the frame's floor is known without
-        # a pass over it (1.6 ms) unless it may reach the few electrons of the exact Poisson
-        floor_dn = s.background_dn + min(s.gradient_dn, 0.0)
-        dim = floor_dn * epd < EXACT_POISSON_BELOW_E and float(img.min()) * epd < EXACT_POISSON_BELOW_E
-        low = img < f32(EXACT_POISSON_BELOW_E / epd) if dim else None
+        low = img < f32(EXACT_POISSON_BELOW_E / epd) if float(img.min()) * epd < EXACT_POISSON_BELOW_E else None
         exact = None
         if low is not None:  # too few electrons for the normal approximation: Poisson itself
             lam_e = np.maximum(img[low], 0).astype(np.float64) * epd
@@ -388,7 +353,6 @@ class _Footprint:
     cover: NDArray[np.float32]  # (K,) covered fraction
     overlapping: bool  # whether two boxes may share a pixel
     in_image: NDArray[np.bool_]  # (m,) covers at least part of a pixel
-    boxes: NDArray[np.intp]  # (m, 4) inclusive pixel boxes u0, v0, u1, v1 (all the light is in them)
 
 
 @dataclass(frozen=True, eq=False)
@@ -465,9 +429,8 @@ def _footprint_of(pose: _Pose) -> _Footprint:
         pose.supersample,
     )
     in_image = np.bincount(owner, weights=cover, minlength=boxed.size) > 0
-    boxes = np.stack([u0, v0, u1, v1], axis=1)
-    fp = _Footprint(tg, boxed, owner, flat, cover, _boxes_overlap(u0, v0, u1, v1), in_image, boxes)
-    for a in (boxed, owner, flat, cover, in_image, boxes):
+    fp = _Footprint(tg, boxed, owner, flat, cover, _boxes_overlap(u0, v0, u1, v1), in_image)
+    for a in (boxed, owner, flat, cover, in_image):
         a.setflags(write=False)  # shared by every frame of this pose
     return fp
 
@@ -513,7 +476,7 @@ def render_frame(
     )
     values = fp.cover * level_dn.astype(np.float32)[fp.owner]
     signal = _accumulate(fp.flat, values, camera.width * camera.height, fp.overlapping)
-    image = _compose(signal.reshape(camera.height, camera.width), settings, rng, fp.boxes)
+    image = _compose(signal.reshape(camera.height, camera.width), settings, rng)
 
     shown = boxed[fp.in_image]
     outline = tg.outline_uv[shown]

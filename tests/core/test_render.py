@@ -409,28 +409,3 @@ def test_reference_plate_shows_at_least_four_coded_targets_in_close_partial_view
         frame = render_frame(cam, field, T)
         coded_visible = sum(ok and t.startswith("C") for t, ok in zip(frame.ids, frame.fully_visible, strict=True))
         assert coded_visible >= 4, look_at
-
-
-@pytest.mark.parametrize("sigma_px", [0.6, 1.5])
-def test_the_blur_about_the_targets_boxes_is_the_whole_frames_blur(rng, sigma_px):
-    # the renderer blurs only about the boxes that hold the light (service.sim.render._blur):
-    # boxes touching the frame's edges and each other, and a lone pixel, as the whole frame's blur
-    from service.sim.render import _blur
-
-    signal = np.zeros((400, 500), dtype=np.float32)
-    boxes = [
-        (0, 0, 9, 6),
-        (490, 390, 499, 399),
-        (40, 50, 60, 58),
-        (55, 55, 70, 75),
-        (300, 20, 300, 20),
-        (0, 370, 5, 399),
-    ]
-    for u0, v0, u1, v1 in boxes:
-        signal[v0 : v1 + 1, u0 : u1 + 1] += rng.uniform(0.0, 200.0, (v1 - v0 + 1, u1 - u0 + 1)).astype(np.float32)
-    whole = _blur(signal.copy(), sigma_px, None)
-    about = _blur(signal.copy(), sigma_px, np.array(boxes))
-    assert np.count_nonzero(whole) > 1000 and not np.shares_memory(about, signal)
-    np.testing.assert_allclose(about, whole, rtol=0, atol=1e-4)
-    # a box left out is dark in the result: it really is blurred box by box
-    assert np.all(_blur(signal.copy(), sigma_px, np.array(boxes[:-1]))[380:, :3] == 0.0)
