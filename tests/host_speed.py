@@ -36,7 +36,8 @@ def sim_render_ms() -> float:
 
 def allowed_gaps(n_frames: int) -> int:
     """Gaps in ``seq`` a 20 Hz stream of ``n_frames`` of the simulated camera may show on this host:
-    0, or a tenth of them (at least 2) where a render takes more than ROOM of the period (4 of 60
-    seen under the whole suite on a slow 2-core VM; rendering under the service's interpreter lock,
-    the regression these tests are there for, skips half or more)."""
-    return 0 if sim_render_ms() < ROOM * PERIOD_MS else max(2, n_frames // 10)
+    0, or a sixth of them (at least 2) where a render takes more than ROOM of the period (4 of 60
+    seen under the whole suite on a slow 2-core VM; 5 of 41 on 2026-12-05's slower one, whose
+    render takes 40 ms of the 50; rendering under the service's interpreter lock, the regression
+    these tests are there for, skips half or more)."""
+    return 0 if sim_render_ms() < ROOM * PERIOD_MS else max(2, n_frames // 6)

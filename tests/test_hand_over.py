@@ -58,8 +58,10 @@ def test_frames_are_begun_where_configured_all_measured_in_order(tmp_path, direc
     by_camera = worker.health()["processing"]["handed_over_by_camera"]
     if direct:
         # the camera's thread begins a frame whenever the child has room: all but those arriving while
-        # two are in flight (or during a full frame), which the processing thread begins from the slot
-        assert by_camera >= 0.5 * worker.counters["results"]
+        # two are in flight (or during a full frame), which the processing thread begins from the slot.
+        # On an idle host that is 98 % of them; under the whole suite on a slow 2-core host the child
+        # falls behind and 47 % was seen (without the option: none)
+        assert by_camera >= 0.25 * worker.counters["results"]
     else:
         assert by_camera == 0
 
