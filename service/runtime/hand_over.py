@@ -56,7 +56,7 @@ class HandOver:
         self.stopping = stopping
         self.by_camera = 0  # frames their camera's thread began
         # the poll set of wait_for_outcome, kept while its connection is the same: made per call (as
-        # multiprocessing.connection.wait does) it was a tenth of the processing thread's time at 500 Hz
+        # multiprocessing.connection.wait does) it was ~9 % of the processing thread's time at 500 Hz
         self._poll: tuple[int, int, select.poll] | None = None
 
     def pop(self) -> InFlight | None:
@@ -115,17 +115,18 @@ class HandOver:
             return
         deadline = time.monotonic() + MEASURE_TIMEOUT_S
         try:
-            fd, poller = self._poll_set(conn.fileno())
-            while not conn.poll(0) and (remaining := deadline - time.monotonic()) > 0:
+            fd = conn.fileno()
+            poller = self._poll_set(fd)
+            while not conn.poll(0) and (remaining_s := deadline - time.monotonic()) > 0:
                 self._wakeup.drain()
                 self.hand_over(0.0)
-                ready = poller.poll(max(1, int(remaining * 1e3 + 1)))
+                ready = poller.poll(max(1, int(remaining_s * 1e3 + 1)))  # ms, rounded up
                 if not ready or any(f == fd for f, _ in ready):  # an answer, a closed pipe, or the timeout
                     return
         except (OSError, EOFError, ValueError):
             return  # the child went away (its connection closed): collect() says so
 
-    def _poll_set(self, fd: int) -> tuple[int, select.poll]:
+    def _poll_set(self, fd: int) -> select.poll:
         """The poll set of the connection ``fd`` and the wake-up's pipe (made again for another child)."""
         wake = self._wakeup.fileno()
         if self._poll is None or self._poll[:2] != (fd, wake):
@@ -133,7 +134,7 @@ class HandOver:
             poller.register(fd, select.POLLIN)
             poller.register(wake, select.POLLIN)
             self._poll = (fd, wake, poller)
-        return fd, self._poll[2]
+        return self._poll[2]
 
     def _take_frame(self) -> tuple[str, Frame] | None:
         for name, ch in self._cameras.items():
