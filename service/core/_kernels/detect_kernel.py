@@ -169,34 +169,48 @@ def _window(P, pv, ph, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, 
                 if img[v0 + a, u0 + b] >= full:
                     ns += 1
     # -- background plane through the rim (the outer 1.5 px), fitted to its pixels that are not bright.
-    # A rim with nothing bright on it is symmetric, so its normal equations are diagonal; only a rim
-    # crossed by something bright needs a solve, and it counts as crossed when >= 2 pixels are bright
-    k = 0
+    # A rim with nothing bright on it is symmetric, so its normal equations are diagonal: one pass of
+    # sums and the rim's brightest pixel decide it (no copy of the rim: that and its second pass were
+    # half of a window's time). Only a rim crossed by something bright is gathered for a solve, and it
+    # counts as crossed when >= 2 pixels are bright
+    s0 = s1 = s2 = sbb = ruu = 0.0
+    k, rim_max = 0, -np.inf
     for a in range(s):
         dv = a - h
         wa, wia, row = w[a], wi[a], P[pv + a]
+        row_sum = 0.0
         for ku in range(-wa, -wia):
-            rb[k], ru[k], rv[k] = row[ph + h + ku], ku, dv
-            k += 1
+            pix = np.float64(row[ph + h + ku])  # float() would keep a float32 buffer's precision
+            row_sum += pix
+            s1 += pix * ku
+            sbb += pix * pix
+            rim_max = max(rim_max, pix)
         for ku in range(max(wia + 1, -wia), wa + 1):
-            rb[k], ru[k], rv[k] = row[ph + h + ku], ku, dv
-            k += 1
-    s0 = s1 = s2 = sbb = ruu = 0.0
-    for j in range(k):
-        s0 += rb[j]
-        s1 += rb[j] * ru[j]
-        s2 += rb[j] * rv[j]
-        sbb += rb[j] * rb[j]
-        ruu += ru[j] * ru[j]
+            pix = np.float64(row[ph + h + ku])  # float() would keep a float32 buffer's precision
+            row_sum += pix
+            s1 += pix * ku
+            sbb += pix * pix
+            rim_max = max(rim_max, pix)
+        s0 += row_sum
+        s2 += row_sum * dv
+        n_row = 2 * (wa - wia) if wia >= 0 else 2 * wa + 1
+        k += n_row
+        ruu += dv * dv * n_row  # the rim is symmetric: its sum of du^2 is its sum of dv^2
     mean_thr = s0 / k + seg
-    n_bright = 0
-    for j in range(k):
-        if rb[j] > mean_thr:
-            n_bright += 1
     b0, b1, b2 = s0 / k, s1 / ruu, s2 / ruu
     rss = sbb - (b0 * s0 + b1 * s1 + b2 * s2)
     m_used, ruu_used, crossed = float(k), ruu, False
-    if n_bright > 0:  # the level of what is not bright, then a plane through what is below it + seg
+    if rim_max > mean_thr:  # the level of what is not bright, then a plane through what is below it + seg
+        k = 0
+        for a in range(s):
+            dv = a - h
+            wa, wia, row = w[a], wi[a], P[pv + a]
+            for ku in range(-wa, -wia):
+                rb[k], ru[k], rv[k] = row[ph + h + ku], ku, dv
+                k += 1
+            for ku in range(max(wia + 1, -wia), wa + 1):
+                rb[k], ru[k], rv[k] = row[ph + h + ku], ku, dv
+                k += 1
         kk, sk = 0, 0.0
         for j in range(k):
             if not rb[j] > mean_thr:

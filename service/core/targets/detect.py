@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from service.core._kernels.roi_kernel import measure_predicted_kernel
 from service.core.results import Reason, SolveError
 from service.core.targets.detect_background import COARSE_STEP, K_SEG, estimate_background, foreground_mask
 from service.core.targets.detect_candidates import find_candidates, misfits, window_radii
@@ -52,7 +53,14 @@ from service.core.targets.detect_types import (
     Image,
     Rejections,
 )
-from service.core.targets.detect_windows import K_PEAK, assess, blobs_from, measure_all
+from service.core.targets.detect_windows import (
+    K_PEAK,
+    assess,
+    assess_constants,
+    blobs_from,
+    blobs_from_table,
+    measure_all,
+)
 
 # the names callers import from here (the types are defined in detect_types)
 __all__ = ["REASONS", "Blobs", "DetectSettings", "DetectWork", "Rejections", "detect_blobs", "measure_windows"]
@@ -199,18 +207,15 @@ def measure_windows(
     """
     img = _check_image(image)
     full, contrast, seg = _levels(img, settings)
-    uv = np.asarray(uv_predicted, dtype=f64).reshape(-1, 2)
-    half = np.broadcast_to(np.asarray(half_size_px, dtype=np.intp), (uv.shape[0],))
+    uv = np.require(np.reshape(uv_predicted, (-1, 2)), f64, ["C", "W"])
+    half = np.require(np.broadcast_to(half_size_px, (uv.shape[0],)), np.intp, ["C", "W"])
     if half.size and half.min() < 2:
         raise ValueError("half_size_px must be at least 2")
-    finite = np.asarray(np.isfinite(uv).all(axis=1))
-    c = np.rint(np.where(finite[:, None], uv, -1e6)).astype(np.intp).T.copy()  # rows cu, cv
     noise_dn = settings.noise_dn
     if noise_dn is not None and noise_dn > 0:
         seg, contrast = max(seg, K_SEG * noise_dn), max(contrast, K_PEAK * noise_dn)
-    meas, placed = measure_all(img, c[0], c[1], np.where(finite, half, 0), np.full(uv.shape[0], seg), full, None)
-    wr, sigma, fill = assess(meas, placed, settings, np.full(uv.shape[0], contrast))
-    ok = ((wr < 0) & ~meas.edge & placed).nonzero()[0]
-    found = np.full(uv.shape[0], -1, dtype=np.intp)
-    found[ok] = np.arange(ok.size)
-    return blobs_from(meas, ok, sigma, fill), found
+    # one compiled call (windows, assessment, the accepted ones' rows): ROI tracking's every frame
+    table, sigma, fill, found = measure_predicted_kernel(
+        img, uv, half, seg, contrast, full, *assess_constants(settings)
+    )
+    return blobs_from_table(table, sigma, fill), found

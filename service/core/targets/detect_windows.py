@@ -226,3 +226,20 @@ def blobs_from(
         fill=fill[index],
         has_ring=np.zeros(index.size, dtype=bool) if has_ring is None else has_ring[index],
     )
+
+
+def blobs_from_table(table: Array, sigma: Array, fill: Array) -> Blobs:
+    """The accepted windows as :class:`Blobs`: their rows (NF, k) of the measurement table (views of
+    it, no copies), with their ``sigma`` and ``fill``
+    (:func:`~service.core._kernels.roi_kernel.measure_predicted_kernel`)."""
+    K = detect_kernel
+    return Blobs(
+        uv=table[K.UV : K.UV + 2].T,
+        ellipse=table[K.ELLIPSE : K.ELLIPSE + 5].T,
+        sigma_px=sigma,
+        area_px=table[K.FLUX] / table[K.LEVEL],
+        peak_dn=table[K.PEAK],
+        background_dn=table[K.BACKGROUND],
+        fill=fill,
+        has_ring=np.zeros(sigma.size, dtype=bool),
+    )
