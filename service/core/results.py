@@ -17,6 +17,8 @@ from typing import Any, overload
 import numpy as np
 import orjson
 
+from service.core._kernels import json_kernel
+
 
 class Reason(StrEnum):
     """Why a measurement or a solve failed; the same codes in CLI, REST, WebSocket and database."""
@@ -138,14 +140,18 @@ class TargetTable(Sequence[TargetObservation]):
         n = len(self.ids)
         if n == 0:
             return "[]"
-        uv = _rows_json(self.uv_px, n)
-        res = _rows_json(self.residual_px, n)
-        used = self.used.tolist()
+        uv = np.asarray(self.uv_px, dtype=np.float64).reshape(n, 2)
+        res = np.asarray(self.residual_px, dtype=np.float64).reshape(n, 2)
+        if np.abs(uv).max() < json_kernel.LIMIT and np.abs(res).max() < json_kernel.LIMIT:  # finite, not huge
+            uv, res = np.require(uv, None, ["C", "W"]), np.require(res, None, ["C", "W"])
+            used = np.require(self.used, np.bool_, ["C", "W"])
+            return json_kernel.targets_json(orjson.dumps(self.ids), uv, res, used).decode()
+        uv_text, res_text = _rows_json(uv, n), _rows_json(res, n)
         return (
             "["
             + ",".join(
                 f'{{"id":{_id_json(i)},"uv":[{q}],"residual_px":[{e}]{"}" if u else _REJECTED_TAIL}'
-                for i, q, e, u in zip(self.ids, uv, res, used, strict=True)
+                for i, q, e, u in zip(self.ids, uv_text, res_text, self.used.tolist(), strict=True)
             )
             + "]"
         )

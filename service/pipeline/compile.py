@@ -18,7 +18,12 @@ from concurrent.futures import ProcessPoolExecutor
 
 # two groups of about equal compile time; each module's warm_up() compiles its kernels
 GROUPS = (
-    ("service.core._kernels.detect_kernel", "service.core._kernels.roi_kernel", "service.sim._raster_kernel"),
+    (
+        "service.core._kernels.detect_kernel",
+        "service.core._kernels.roi_kernel",
+        "service.sim._raster_kernel",
+        "service.core._kernels.json_kernel",
+    ),
     ("service.core._kernels.geometry_kernels", "service.core._kernels.resection_kernel", "service.core.targets.decode"),
 )
 

@@ -107,7 +107,8 @@ def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels for the types the pipeline passes."""
     rows = np.arange(3, dtype=np.int64)
     window_half_size_kernel(np.full(3, 60.0), np.zeros(3, dtype=np.bool_), rows, np.full(3, 1000.0), 0.0067, 1.0)
-    gather_found_kernel(np.array([0, -1, 1], dtype=np.int64), np.zeros((2, 2)), rows, np.zeros((3, 2)))
+    # the disks' pixels come as a view of measure_predicted_kernel's table: (2, k) transposed
+    gather_found_kernel(np.array([0, -1, 1], dtype=np.int64), np.zeros((2, 2)).T, rows, np.zeros((3, 2)))
     limits = np.array([6, 5000, 4, 0.6, 2, 2.5, 0.4, 3, 4, 0.015, 0.05, 1.3, 2.5])
     uv, half, codes = np.full((2, 2), 16.0), np.full(2, 6, dtype=np.intp), np.arange(5, dtype=np.intp)
     for img in warm_images((np.uint8, np.uint16)):

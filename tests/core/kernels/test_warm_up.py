@@ -43,6 +43,7 @@ for image in (image8, image8.astype(np.uint16) * 257):
         measurer = FrameMeasurer(cell.camera, cell.field)  # a full frame, then the ROI tracking
         for t_s in (0.0, 0.01):
             outcome = measurer.measure(frame, t_s)
+            outcome.result.targets.to_json()  # the measurement process encodes them
             kinds.append([str(frame.dtype), writeable, isinstance(outcome.result, PoseResult), outcome.mode])
 after = signatures()
 new = {k: after[k] - before.get(k, 0) for k in after if after[k] != before.get(k, 0)}
