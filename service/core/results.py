@@ -156,6 +156,18 @@ class TargetTable(Sequence[TargetObservation]):
             + "]"
         )
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled as three byte strings and the JSON text if made: a measurement process sends a
+        table every frame, and pickle's way (a string object per id, each array rebuilt through
+        numpy's reducer) was a tenth of that process's time at 500 frames/s."""
+        n = len(self.ids)
+        numbers = np.empty((n, 4))
+        numbers[:, :2], numbers[:, 2:] = np.reshape(self.uv_px, (n, 2)), np.reshape(self.residual_px, (n, 2))
+        flags = np.empty((n, 2), dtype=np.bool_)
+        flags[:, 0], flags[:, 1] = self.coded, self.used
+        text = self.__dict__.get("_json")  # the cached encoding, made on the sending side
+        return (_table_from_wire, (orjson.dumps(self.ids), numbers.tobytes(), flags.tobytes(), text))
+
     def to_list(self) -> list[dict[str, Any]]:
         uv = np.round(self.uv_px, 4).tolist()
         res = np.round(self.residual_px, 4).tolist()
@@ -163,6 +175,18 @@ class TargetTable(Sequence[TargetObservation]):
             {"id": i, "uv": q, "residual_px": e} if u else {"id": i, "uv": q, "residual_px": e, "rejected": True}
             for i, q, e, u in zip(self.ids, uv, res, self.used.tolist(), strict=True)
         ]
+
+
+def _table_from_wire(ids: bytes, numbers: bytes, flags: bytes, text: str | None) -> TargetTable:
+    """A :class:`TargetTable` from :meth:`TargetTable.__reduce__`'s parts (its arrays read-only views)."""
+    ids_tuple = tuple(orjson.loads(ids))
+    n = len(ids_tuple)
+    values = np.frombuffer(numbers).reshape(n, 4)
+    flag = np.frombuffer(flags, dtype=np.bool_).reshape(n, 2)
+    table = TargetTable(ids_tuple, values[:, :2], values[:, 2:], flag[:, 0], flag[:, 1])
+    if text is not None:
+        table.__dict__["_json"] = text
+    return table
 
 
 _REJECTED_TAIL = ',"rejected":true}'
@@ -196,6 +220,18 @@ class PoseResult:
     # (6, 6) over [rotation (3) rad about the field axes, position (3) mm], as the resection gives it
     # (ResectionResult.covariance): the correlation of position and rotation the σ leave out
     covariance: Any = None
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled with its pose and precision as one byte string: numpy's reducer costs ~15 us per
+        array, and a measurement process sends four of them every frame."""
+        parts = [
+            np.asarray(a, dtype=np.float64).reshape(k)
+            for a, k in ((self.T_field_camera, 16), (self.sigma_position_mm, 3), (self.sigma_rotation_deg, 3))
+        ]
+        if self.covariance is not None:
+            parts.append(np.asarray(self.covariance, dtype=np.float64).reshape(36))
+        numbers = np.concatenate(parts).tobytes()
+        return (_pose_from_wire, (numbers, float(self.rms_px), float(self.sigma0_px), self.targets, int(self.n_iter)))
 
     @property
     def n_coded(self) -> int:
@@ -250,3 +286,10 @@ class PoseResult:
                 for t in self.targets
             ]
         )
+
+
+def _pose_from_wire(numbers: bytes, rms_px: float, sigma0_px: float, targets: Any, n_iter: int) -> PoseResult:
+    """A :class:`PoseResult` from :meth:`PoseResult.__reduce__`'s parts (its arrays read-only views)."""
+    v = np.frombuffer(numbers)
+    cov = v[22:].reshape(6, 6) if v.size == 58 else None
+    return PoseResult(v[:16].reshape(4, 4), v[16:19], v[19:22], rms_px, sigma0_px, targets, n_iter, True, cov)

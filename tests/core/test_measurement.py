@@ -126,3 +126,47 @@ def test_the_target_tables_json_is_the_text_of_its_list():
     assert parsed[2]["uv"][0] is None and parsed[1]["residual_px"][0] is None  # no JSON for NaN, inf
     empty = TargetTable((), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0, bool))
     assert empty.to_json() == "[]"
+
+
+@pytest.mark.parametrize("with_covariance", [True, False])
+def test_a_pose_and_its_target_table_cross_a_process_boundary_unchanged(rng, with_covariance):
+    """The measurement process pickles every frame's result in its own compact form: what arrives
+    is the same pose, precision and targets, with the targets' JSON made on the sending side."""
+    import pickle
+
+    from service.core.results import PoseResult, TargetTable
+
+    n = 7
+    table = TargetTable(
+        tuple(f"T{k}" for k in range(n - 1)) + ('odd "id"',),
+        rng.normal(500, 200, (n, 2)),
+        rng.normal(0, 0.05, (n, 2)),
+        rng.random(n) < 0.5,
+        rng.random(n) < 0.8,
+    )
+    text = table.to_json()
+    pose = PoseResult(
+        rng.normal(size=(4, 4)),
+        rng.random(3),
+        rng.random(3),
+        np.float64(0.021),
+        0.034,
+        table,
+        n_iter=3,
+        covariance=rng.normal(size=(6, 6)) if with_covariance else None,
+    )
+    back = pickle.loads(pickle.dumps(pose, protocol=pickle.HIGHEST_PROTOCOL))
+    for name in ("T_field_camera", "sigma_position_mm", "sigma_rotation_deg"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(pose, name))
+    assert (back.covariance is None) == (not with_covariance)
+    if with_covariance:
+        np.testing.assert_array_equal(back.covariance, pose.covariance)
+    assert (back.rms_px, back.sigma0_px, back.n_iter, back.ok) == (0.021, 0.034, 3, True)
+    t = back.targets
+    assert isinstance(t, TargetTable) and t.ids == table.ids
+    for name in ("uv_px", "residual_px", "coded", "used"):
+        np.testing.assert_array_equal(getattr(t, name), getattr(table, name))
+    assert "_json" in t.__dict__ and t.to_json() == text  # sent encoded, not encoded again
+    assert back.to_dict() == pose.to_dict()
+    fresh = pickle.loads(pickle.dumps(TargetTable(table.ids, table.uv_px, table.residual_px, table.coded, table.used)))
+    assert "_json" not in fresh.__dict__ and fresh.to_json() == text  # not encoded: encoded where needed
