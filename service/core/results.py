@@ -17,7 +17,7 @@ from typing import Any, overload
 import numpy as np
 import orjson
 
-from service.core._kernels import json_kernel
+from service.core._kernels import json_kernel, kernel_array
 
 
 class Reason(StrEnum):
@@ -143,8 +143,8 @@ class TargetTable(Sequence[TargetObservation]):
         uv = np.asarray(self.uv_px, dtype=np.float64).reshape(n, 2)
         res = np.asarray(self.residual_px, dtype=np.float64).reshape(n, 2)
         if np.abs(uv).max() < json_kernel.LIMIT and np.abs(res).max() < json_kernel.LIMIT:  # finite, not huge
-            uv, res = np.require(uv, None, ["C", "W"]), np.require(res, None, ["C", "W"])
-            used = np.require(self.used, np.bool_, ["C", "W"])
+            uv, res = kernel_array(uv), kernel_array(res)
+            used = kernel_array(self.used, np.bool_)
             return json_kernel.targets_json(orjson.dumps(self.ids), uv, res, used).decode()
         uv_text, res_text = _rows_json(uv, n), _rows_json(res, n)
         return (

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.core._kernels import kernel_array
 from service.core._kernels.geometry_kernels import is_rigid_kernel, whitened_ideal_kernel
 from service.core._kernels.resection_kernel import (
     DEGENERATE,
@@ -264,7 +265,7 @@ def resect(
         ``no_convergence``, ``bad_input`` (non-finite values).
     """
     p, q = check_observations(p_field, uv)
-    p, q = (np.require(a, np.float64, ["C", "W"]) for a in (p, q))  # the one array type the kernels know
+    p, q = kernel_array(p), kernel_array(q)  # the one array type the kernels know
     n, c = len(p), float(camera.c_mm)
     # camera.ideal_from_pixel and the inverse of camera.ideal_from_pixel_jacobian in one compiled pass:
     # as two array pipelines they cost a sixth of an ROI frame's resection

@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.core._kernels import kernel_array
 from service.core._kernels.resection_kernel import centre_planar_kernel, rotation_from_centre_kernel, spread_kernel
 from service.core.geometry.camera_model import BrownFraser
 from service.core.geometry.frames import make_T
@@ -78,7 +79,7 @@ def check_geometry(p: Array, xy: Array) -> Array:
     """Raise on collinear field or image points; return the field points' spread (3,)."""
     # compiled: as array expressions the scatter matrices and their spreads were a sixth of
     # the resection of an ROI frame
-    s, s_img = spread_kernel(np.require(p, np.float64, ["C", "W"]), np.require(xy, np.float64, ["C", "W"]))
+    s, s_img = spread_kernel(kernel_array(p), kernel_array(xy))
     if s[0] <= 0 or s[1] < COLLINEAR_RATIO * s[0]:
         msg = "The field points are collinear (or coincide): the rotation about them is unknown."
         raise SolveError(Reason.degenerate_geometry, msg)
@@ -90,7 +91,7 @@ def check_geometry(p: Array, xy: Array) -> Array:
 
 def _c_array(a: Array) -> Array:
     """``a`` as a writable C array of float64: the one array type the kernels know."""
-    return np.require(a, np.float64, ["C", "W"])
+    return kernel_array(a)
 
 
 def _normalizer(points: Array) -> Array:

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from service.core._kernels import kernel_array
 from service.core._kernels.roi_kernel import measure_predicted_kernel
 from service.core.results import Reason, SolveError
 from service.core.targets.detect_background import COARSE_STEP, K_SEG, estimate_background, foreground_mask
@@ -207,8 +208,8 @@ def measure_windows(
     """
     img = _check_image(image)
     full, contrast, seg = _levels(img, settings)
-    uv = np.require(np.reshape(uv_predicted, (-1, 2)), f64, ["C", "W"])
-    half = np.require(np.broadcast_to(half_size_px, (uv.shape[0],)), np.intp, ["C", "W"])
+    uv = kernel_array(np.reshape(uv_predicted, (-1, 2)))
+    half = kernel_array(np.broadcast_to(half_size_px, (uv.shape[0],)), np.intp)
     if half.size and half.min() < 2:
         raise ValueError("half_size_px must be at least 2")
     noise_dn = settings.noise_dn

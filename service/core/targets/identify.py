@@ -20,6 +20,7 @@ from typing import Literal, overload
 import numpy as np
 from numpy.typing import NDArray
 
+from service.core._kernels import kernel_array
 from service.core._kernels.geometry_kernels import (
     eccentricity_kernel,
     match_kernel,
@@ -78,8 +79,8 @@ def match_predicted(
     rows = np.asarray(rows, dtype=np.int64)
     free = np.ones(len(blob_uv), bool) if taken is None else ~np.asarray(taken, dtype=bool)
     cand = match_kernel(
-        np.require(uv_predicted, np.float64, ["C", "W"]).reshape(-1, 2),
-        np.require(blob_uv, np.float64, ["C", "W"]).reshape(-1, 2),
+        kernel_array(uv_predicted).reshape(-1, 2),
+        kernel_array(blob_uv).reshape(-1, 2),
         free,
         float(tolerance_px),
     )
@@ -171,14 +172,14 @@ def eccentricity_px(
         ex /= np.linalg.norm(ex, axis=1, keepdims=True)
         ey = np.stack([ny * ex[:, 2] - nz * ex[:, 1], nz * ex[:, 0] - nx * ex[:, 2], nx * ex[:, 1] - ny * ex[:, 0]], 1)
         # writable C arrays: one compiled kernel for every way the inputs come
-        ex, ey = (np.require(a, np.float64, ["C", "W"]) for a in (ex, ey))
+        ex, ey = kernel_array(ex), kernel_array(ey)
     T = np.asarray(T_field_camera, dtype=np.float64)
     R_camera_field = np.ascontiguousarray(T[:3, :3].T)
     t_camera_field = -R_camera_field @ T[:3, 3]
-    radius = np.require(np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (n,)), np.float64, ["C", "W"])
+    radius = kernel_array(np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (n,)))
     # the pixels' whitening (inverse ideal-from-pixel Jacobian) in one compiled pass, as the resection gets it
     _, W = whitened_ideal_kernel(
-        np.require(uv, np.float64, ["C", "W"]),
+        kernel_array(uv),
         (camera.width - 1) / 2.0,
         (camera.height - 1) / 2.0,
         *map(float, camera.pixel_size_mm),
@@ -189,7 +190,7 @@ def eccentricity_px(
     return eccentricity_kernel(
         ex,
         ey,
-        np.require(p_field, np.float64, ["C", "W"]),
+        kernel_array(p_field),
         R_camera_field,
         t_camera_field,
         float(camera.c_mm),
