@@ -343,15 +343,22 @@ def _window(P, pv, ph, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, 
             row0, row1 = k0 + k2 * dv + k5 * dv * dv, k1 + k4 * dv
             lo, hi = h - w[a], h + w[a]
             seg_row = P[pv + a, ph + lo : ph + hi + 1]
-            for b in range(lo):  # outside the circle the pixels count as zero
-                du = float(b - h)
-                mis += min(max(row0 + du * (row1 + k3 * du), 0.0), level)
+            # outside the circle the pixels count as zero and the drawn ellipse is mostly zero too: the
+            # row's model is a concave parabola, so where it is <= 0 at the circle's edge on the side
+            # away from its vertex it is zero all the way out (the corners were a fifth of the pixels)
+            edge_u = float(w[a] + 1)
+            vertex = -row1 / (2.0 * k3) if k3 < 0 else 0.0
+            if not (k3 < 0 and vertex >= -edge_u and row0 - edge_u * (row1 - k3 * edge_u) <= 0.0):
+                for b in range(lo):
+                    du = float(b - h)
+                    mis += min(max(row0 + du * (row1 + k3 * du), 0.0), level)
             for t in range(hi + 1 - lo):
                 du = float(t + lo - h)
                 mis += abs(min(max(row0 + du * (row1 + k3 * du), 0.0), level) - (seg_row[t] - b0))
-            for b in range(hi + 1, s):
-                du = float(b - h)
-                mis += min(max(row0 + du * (row1 + k3 * du), 0.0), level)
+            if not (k3 < 0 and vertex <= edge_u and row0 + edge_u * (row1 + k3 * edge_u) <= 0.0):
+                for b in range(hi + 1, s):
+                    du = float(b - h)
+                    mis += min(max(row0 + du * (row1 + k3 * du), 0.0), level)
         mismatch = mis / level
     area = S / level
     out[0, i], out[1, i] = uc + (u0 + h), vc + (v0 + h)
@@ -451,6 +458,48 @@ def assess_kernel(out, n_sat, edge, usable, contrast, limits, codes):
     return reason, sigma, fill
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def measure_predicted_kernel(img, uv, half, seg, contrast, full, limits, codes):
+    """Measure and assess the disk in the window of half size ``half`` (n,) px about each rounded
+    prediction ``uv`` (n, 2) px (:func:`service.core.targets.detect.measure_windows`): ``seg`` and
+    ``contrast`` DN are every window's segmentation and contrast levels, ``limits`` and ``codes``
+    :func:`assess_kernel`'s. In this module, not beside ROI tracking's other kernels: numba's disk
+    cache of a kernel does not see a change of another module's kernel it calls.
+
+    Returns the measurement table (NF, k) of the k accepted disks (their rim not crossed, the
+    window inside the image), their sigma_px (k,) and fill (k,), and per window the index of its
+    disk among them, or -1."""
+    n = uv.shape[0]
+    height, width = img.shape
+    cu, cv = np.empty(n, dtype=np.intp), np.empty(n, dtype=np.intp)
+    radius, placed = np.zeros(n, dtype=np.intp), np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        if np.isfinite(uv[i, 0]) and np.isfinite(uv[i, 1]):
+            cu[i], cv[i], radius[i] = int(np.rint(uv[i, 0])), int(np.rint(uv[i, 1])), half[i]
+        else:  # far outside, as the numpy path puts it
+            cu[i] = cv[i] = -1000000
+        r = radius[i]
+        placed[i] = cu[i] >= r and cu[i] + r < width and cv[i] >= r and cv[i] + r < height and r >= 2
+    seg_n, contrast_n = np.full(n, seg), np.full(n, contrast)
+    out, n_sat, edge = measure_windows_kernel(
+        img, cu, cv, radius, placed, seg_n, full, np.zeros(1, np.float32), np.full(n, -1, dtype=np.intp)
+    )
+    reason, sigma, fill = assess_kernel(out, n_sat, edge, placed, contrast_n, limits, codes)
+    found = np.full(n, -1, dtype=np.intp)
+    k = 0
+    for i in range(n):
+        if reason[i] < 0 and not edge[i] and placed[i]:
+            found[i] = k
+            k += 1
+    table, sigma_ok, fill_ok = np.empty((NF, k)), np.empty(k), np.empty(k)
+    for i in range(n):
+        j = found[i]
+        if j >= 0:
+            table[:, j] = out[:, i]
+            sigma_ok[j], fill_ok[j] = sigma[i], fill[i]
+    return table, sigma_ok, fill_ok, found
+
+
 @lru_cache(maxsize=1)  # once per process
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels for 8- and 16-bit images, writeable or not,
@@ -469,6 +518,9 @@ def warm_up() -> None:
         crowd_kernel.mask_windows_kernel(img, c, c, half, np.array([0], dtype=np.intp), own, seg)
     limits = np.array([6, 5000, 4, 0.6, 2, 2.5, 0.4, 3, 4, 0.015, 0.05, 1.3, 2.5])
     assess_kernel(out, n_sat, edge, placed, 2 * seg, limits, np.arange(5, dtype=np.intp))
+    uv, codes = np.full((2, 2), 16.0), np.arange(5, dtype=np.intp)
+    for img in warm_images((np.uint8, np.uint16)):
+        measure_predicted_kernel(img, uv, half, 5.0, 10.0, float(np.iinfo(img.dtype).max), limits, codes)
     contour_kernel.warm_up()
     noise_kernel.warm_up()
     centre, flags = np.array([[1.0, 1.0], [9.0, 1.0]]), np.ones(2, dtype=np.bool_)

@@ -1,10 +1,10 @@
 """ROI tracking's per-target bookkeeping, compiled (numba).
 
-The window sizes about the predicted targets, their measurement and assessment in
-one call, and the gathering of the targets found in them
-(:class:`service.pipeline.measure.FrameMeasurer`): as numpy expressions some forty
-array passes over ~230 targets per frame, each costing more in call overhead than
-in arithmetic, together a sixth of an ROI frame.
+The window sizes about the predicted targets and the gathering of the targets found
+in them (:class:`service.pipeline.measure.FrameMeasurer`; their measurement in one
+call is :func:`service.core._kernels.detect_kernel.measure_predicted_kernel`): as
+numpy expressions some twenty array passes over ~230 targets per frame, each costing
+more in call overhead than in arithmetic, together ~3 % of an ROI frame.
 """
 
 from __future__ import annotations
@@ -13,9 +13,6 @@ from functools import lru_cache
 
 import numpy as np
 from numba import njit
-
-from service.core._kernels import warm_images
-from service.core._kernels.detect_kernel import NF, assess_kernel, measure_windows_kernel
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -61,47 +58,6 @@ def gather_found_kernel(found, blob_uv, rows, uv_pred):
     return rows_ok, uv, worst
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def measure_predicted_kernel(img, uv, half, seg, contrast, full, limits, codes):
-    """Measure and assess the disk in the window of half size ``half`` (n,) px about each rounded
-    prediction ``uv`` (n, 2) px (:func:`service.core.targets.detect.measure_windows`): ``seg`` and
-    ``contrast`` DN are every window's segmentation and contrast levels, ``limits`` and ``codes``
-    :func:`~service.core._kernels.detect_kernel.assess_kernel`'s.
-
-    Returns the measurement table (NF, k) of the k accepted disks (their rim not crossed, the
-    window inside the image), their sigma_px (k,) and fill (k,), and per window the index of its
-    disk among them, or -1."""
-    n = uv.shape[0]
-    height, width = img.shape
-    cu, cv = np.empty(n, dtype=np.intp), np.empty(n, dtype=np.intp)
-    radius, placed = np.zeros(n, dtype=np.intp), np.zeros(n, dtype=np.bool_)
-    for i in range(n):
-        if np.isfinite(uv[i, 0]) and np.isfinite(uv[i, 1]):
-            cu[i], cv[i], radius[i] = int(np.rint(uv[i, 0])), int(np.rint(uv[i, 1])), half[i]
-        else:  # far outside, as the numpy path puts it
-            cu[i] = cv[i] = -1000000
-        r = radius[i]
-        placed[i] = cu[i] >= r and cu[i] + r < width and cv[i] >= r and cv[i] + r < height and r >= 2
-    seg_n, contrast_n = np.full(n, seg), np.full(n, contrast)
-    out, n_sat, edge = measure_windows_kernel(
-        img, cu, cv, radius, placed, seg_n, full, np.zeros(1, np.float32), np.full(n, -1, dtype=np.intp)
-    )
-    reason, sigma, fill = assess_kernel(out, n_sat, edge, placed, contrast_n, limits, codes)
-    found = np.full(n, -1, dtype=np.intp)
-    k = 0
-    for i in range(n):
-        if reason[i] < 0 and not edge[i] and placed[i]:
-            found[i] = k
-            k += 1
-    table, sigma_ok, fill_ok = np.empty((NF, k)), np.empty(k), np.empty(k)
-    for i in range(n):
-        j = found[i]
-        if j >= 0:
-            table[:, j] = out[:, i]
-            sigma_ok[j], fill_ok[j] = sigma[i], fill[i]
-    return table, sigma_ok, fill_ok, found
-
-
 @lru_cache(maxsize=1)  # once per process
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels for the types the pipeline passes."""
@@ -109,7 +65,3 @@ def warm_up() -> None:
     window_half_size_kernel(np.full(3, 60.0), np.zeros(3, dtype=np.bool_), rows, np.full(3, 1000.0), 0.0067, 1.0)
     # the disks' pixels come as a view of measure_predicted_kernel's table: (2, k) transposed
     gather_found_kernel(np.array([0, -1, 1], dtype=np.int64), np.zeros((2, 2)).T, rows, np.zeros((3, 2)))
-    limits = np.array([6, 5000, 4, 0.6, 2, 2.5, 0.4, 3, 4, 0.015, 0.05, 1.3, 2.5])
-    uv, half, codes = np.full((2, 2), 16.0), np.full(2, 6, dtype=np.intp), np.arange(5, dtype=np.intp)
-    for img in warm_images((np.uint8, np.uint16)):
-        measure_predicted_kernel(img, uv, half, 5.0, 10.0, float(np.iinfo(img.dtype).max), limits, codes)

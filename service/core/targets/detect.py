@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.core._kernels import kernel_array
-from service.core._kernels.roi_kernel import measure_predicted_kernel
+from service.core._kernels.detect_kernel import measure_predicted_kernel
 from service.core.results import Reason, SolveError
 from service.core.targets.detect_background import COARSE_STEP, K_SEG, estimate_background, foreground_mask
 from service.core.targets.detect_candidates import find_candidates, misfits, window_radii

@@ -21,9 +21,9 @@ import pytest
 from scipy.special import roots_legendre
 
 from service.core._kernels import detect_kernel as K
-from service.core._kernels.detect_kernel import assess_kernel, measure_windows_kernel
+from service.core._kernels.detect_kernel import assess_kernel, measure_predicted_kernel, measure_windows_kernel
 from service.core.targets.detect_types import DetectSettings
-from service.core.targets.detect_windows import assess_constants
+from service.core.targets.detect_windows import assess, assess_constants, measure_all
 
 
 def _disk_moments(q, powers):
@@ -275,3 +275,33 @@ def test_assessment_is_the_numpy_decision(rng):
         np.zeros((K.NF, 0)), np.zeros(0, np.intp), np.zeros(0, bool), np.zeros(0, bool), np.zeros(0), limits, codes
     )
     assert all(x.shape == (0,) for x in empty)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_predicted_windows_are_measured_and_assessed_as_the_numpy_path_does(rng, dtype):
+    """The one call of ROI tracking against measure_all + assess + the selection of accepted
+    windows (what measure_windows did in numpy): the same disks, rows, sigma, fill and indices."""
+    img, full, centres, radii = _scene(rng, dtype)
+    n = len(centres)
+    uv = centres + rng.uniform(-1.5, 1.5, (n, 2))
+    uv[0] = [np.nan, 40.0]  # no prediction
+    uv[1] = [3.0, 3.0]  # a window reaching out of the image
+    half = np.ascontiguousarray(np.ceil(radii + 5), dtype=np.intp)
+    half[2] = 2  # too small for its disk: refused
+    seg, contrast = 0.03 * full, 0.08 * full
+    limits, codes = assess_constants(DetectSettings())
+    frozen = img.view()
+    frozen.flags.writeable = False  # a replayed frame is read-only: the same measurement
+    table, sigma, fill, found = measure_predicted_kernel(frozen, uv, half, seg, contrast, float(full), limits, codes)
+
+    finite = np.isfinite(uv).all(axis=1)
+    c = np.rint(np.where(finite[:, None], uv, -1e6)).astype(np.intp).T.copy()
+    meas, placed = measure_all(img, c[0], c[1], np.where(finite, half, 0), np.full(n, seg), full, None)
+    reason, sigma_ref, fill_ref = assess(meas, placed, DetectSettings(), np.full(n, contrast))
+    ok = ((reason < 0) & ~meas.edge & placed).nonzero()[0]
+    assert 0 < ok.size < n - 3 and not placed[:2].any() and found[2] == -1  # accepted, refused, outside
+    np.testing.assert_array_equal(found[ok], np.arange(ok.size))
+    assert np.all(np.delete(found, ok) == -1)
+    np.testing.assert_array_equal(table, meas.table[:, ok])
+    np.testing.assert_array_equal(sigma, sigma_ref[ok])
+    np.testing.assert_array_equal(fill, fill_ref[ok])
