@@ -44,6 +44,12 @@ SLOW_MODULES = (
 )
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    from service.pipeline.compile import refresh_kernel_caches
+
+    refresh_kernel_caches()  # a kernel module edited since the caches were made: recompile, not load stale code
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         # the driver contracts run once per driver: the stand-in drivers' cases start processes

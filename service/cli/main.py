@@ -52,6 +52,9 @@ def _run(args: argparse.Namespace) -> int:
     run: Callable[[argparse.Namespace], int] = args.func
     # input errors are reported under the top-level verb, as they always were
     prog = f"posecell {args.verb}"
+    from service.pipeline.compile import refresh_kernel_caches  # here, not at import: --help stays instant
+
+    refresh_kernel_caches()  # before any verb loads a kernel: none from a stale cache
     try:
         return run(args)
     except Failed as e:

@@ -17,8 +17,6 @@ from typing import Any, overload
 import numpy as np
 import orjson
 
-from service.core._kernels import json_kernel, kernel_array
-
 
 class Reason(StrEnum):
     """Why a measurement or a solve failed; the same codes in CLI, REST, WebSocket and database."""
@@ -142,6 +140,8 @@ class TargetTable(Sequence[TargetObservation]):
             return "[]"
         uv = np.asarray(self.uv_px, dtype=np.float64).reshape(n, 2)
         res = np.asarray(self.residual_px, dtype=np.float64).reshape(n, 2)
+        from service.core._kernels import json_kernel, kernel_array  # numba: not for every importer of results
+
         if np.abs(uv).max() < json_kernel.LIMIT and np.abs(res).max() < json_kernel.LIMIT:  # finite, not huge
             uv, res = kernel_array(uv), kernel_array(res)
             used = kernel_array(self.used, np.bool_)

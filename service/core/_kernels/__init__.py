@@ -3,6 +3,9 @@
 Every kernel is compiled with ``nogil=True``: the service measures in one thread while others
 acquire, encode and send; a kernel that kept the interpreter's lock held them all (a fifth of the
 lock's time at 500 frames/s was the ROI windows' kernel alone).
+
+Kernels call each other across modules, which numba's disk cache does not follow:
+:func:`service.pipeline.compile.refresh_kernel_caches` empties the caches when any module changed.
 """
 
 from collections.abc import Iterator
