@@ -14,6 +14,7 @@ protective stops.
 
 from __future__ import annotations
 
+import heapq
 import threading
 import time
 
@@ -56,7 +57,8 @@ class SimRobot:
         self.jitter_ns = float(jitter_s * 1e9)
         self.clock_offset_s = clock_offset_s
         self.clock_rate = 1.0 + clock_drift_ppm * 1e-6
-        self._rng = np.random.default_rng(seed)
+        self._rng = np.random.default_rng(seed)  # the encoders' noise
+        self._jitter = np.random.default_rng([seed, 1])  # the delivery's, drawn apart: a tick ahead
         self._history = RobotHistory(max(2, int(history_s * rate_hz)))
         self._plugged = True
         self._stop = threading.Event()
@@ -134,33 +136,34 @@ class SimRobot:
     # --- the controller ---------------------------------------------------------------------
 
     def _run(self) -> None:
+        # One wake-up per report, at its arrival: each tick's arrival is drawn a tick ahead, and its
+        # report (the arm at the tick) computed when it arrives. Waking at the tick too, to compute it
+        # then, doubled the thread's wake-ups (a tenth of a core at 500 Hz on a 2-vCPU host).
         period_ns = int(1e9 / self.rate_hz)
         k = (time.monotonic_ns() - self.epoch_ns) // period_ns + 1
-        pending: list[tuple[int, tuple[np.ndarray, np.ndarray, float, float]]] = []  # reports in flight
+        in_flight: list[tuple[int, int]] = []  # (arrival ns, tick), a heap
         ahead = _Ahead()
         while not self._stop.is_set():
             now = time.monotonic_ns()
             if now - (self.epoch_ns + k * period_ns) > 100_000_000:  # fell far behind (busy machine)
                 k = (now - self.epoch_ns) // period_ns
-            while self.epoch_ns + k * period_ns <= now:
-                t_tick_ns = self.epoch_ns + k * period_ns
-                t_cell_s = (t_tick_ns - self.epoch_ns) * 1e-9
-                T_nominal, q_measured = ahead.report(self._cell, k, period_ns * 1e-9, self._rng)
-                arrival = t_tick_ns + self.latency_ns + int(self._rng.exponential(self.jitter_ns))
-                t_robot_s = (t_tick_ns * 1e-9 - self.clock_offset_s) * self.clock_rate
-                pending.append((arrival, (T_nominal, q_measured, t_robot_s, t_cell_s)))
+            while self.epoch_ns + k * period_ns <= now + period_ns:  # the ticks up to the next one
+                arrival = (
+                    self.epoch_ns + k * period_ns + self.latency_ns + int(self._jitter.exponential(self.jitter_ns))
+                )
+                heapq.heappush(in_flight, (arrival, k))
                 k += 1
-            pending.sort(key=lambda p: p[0])
-            while pending and pending[0][0] <= now:
-                _, (T, q, t_robot_s, t_cell_s) = pending.pop(0)
+            while in_flight and in_flight[0][0] <= now:
+                _, tick = heapq.heappop(in_flight)
+                t_tick_ns = self.epoch_ns + tick * period_ns
+                T, q = ahead.report(self._cell, tick, period_ns * 1e-9, self._rng)
+                t_robot_s = (t_tick_ns * 1e-9 - self.clock_offset_s) * self.clock_rate
+                t_cell_s = (t_tick_ns - self.epoch_ns) * 1e-9
                 if self._plugged:  # stamped on receipt, like a real reader thread (scheduling jitter included)
                     self._history.append(RobotSample(T, q, time.monotonic_ns(), t_robot_s, {"t_cell_s": t_cell_s}))
-            wake = self.epoch_ns + k * period_ns
-            if pending:
-                wake = min(wake, pending[0][0])
-            delay = (wake - time.monotonic_ns()) * 1e-9
-            if delay > 0:
-                self._stop.wait(delay)
+            delay = (in_flight[0][0] - time.monotonic_ns()) * 1e-9
+            if delay > 0:  # a sleep, not the stop event's wait: 21 against 50 us of CPU a wake-up here
+                time.sleep(min(delay, 0.01))  # close() waits at most this for the loop to see the stop
 
 
 AHEAD_TICKS = 8  # reports computed together: one vectorised forward kinematics instead of eight
