@@ -55,9 +55,10 @@ class HandOver:
         self.ready = ready  # the measurers are built: before, no camera's thread begins a frame
         self.stopping = stopping
         self.by_camera = 0  # frames their camera's thread began
-        # the poll set of wait_for_outcome, kept while its connection is the same: made per call (as
-        # multiprocessing.connection.wait does) it was ~9 % of the processing thread's time at 500 Hz
-        self._poll: tuple[int, int, select.poll] | None = None
+        # the poll sets of wait_for_outcome, kept while its connection is the same: made per call (as
+        # multiprocessing.connection.wait does, Connection.poll too) they were ~9 and ~15 % of the
+        # processing thread's time at 500 Hz
+        self._poll: tuple[int, int, select.poll, select.poll] | None = None
 
     def pop(self) -> InFlight | None:
         with self._wakeup:
@@ -116,8 +117,8 @@ class HandOver:
         deadline = time.monotonic() + MEASURE_TIMEOUT_S
         try:
             fd = conn.fileno()
-            poller = self._poll_set(fd)
-            while not conn.poll(0) and (remaining_s := deadline - time.monotonic()) > 0:
+            answered, poller = self._poll_sets(fd)
+            while not answered.poll(0) and (remaining_s := deadline - time.monotonic()) > 0:
                 self._wakeup.drain()
                 self.hand_over(0.0)
                 ready = poller.poll(max(1, int(remaining_s * 1e3 + 1)))  # ms, rounded up
@@ -126,15 +127,17 @@ class HandOver:
         except (OSError, EOFError, ValueError):
             return  # the child went away (its connection closed): collect() says so
 
-    def _poll_set(self, fd: int) -> select.poll:
-        """The poll set of the connection ``fd`` and the wake-up's pipe (made again for another child)."""
+    def _poll_sets(self, fd: int) -> tuple[select.poll, select.poll]:
+        """Poll sets of the connection ``fd`` alone (is the answer there?) and of it with the
+        wake-up's pipe (wait for either), made again for another child."""
         wake = self._wakeup.fileno()
         if self._poll is None or self._poll[:2] != (fd, wake):
-            poller = select.poll()
-            poller.register(fd, select.POLLIN)
-            poller.register(wake, select.POLLIN)
-            self._poll = (fd, wake, poller)
-        return self._poll[2]
+            answered, either = select.poll(), select.poll()
+            answered.register(fd, select.POLLIN)
+            either.register(fd, select.POLLIN)
+            either.register(wake, select.POLLIN)
+            self._poll = (fd, wake, answered, either)
+        return self._poll[2], self._poll[3]
 
     def _take_frame(self) -> tuple[str, Frame] | None:
         for name, ch in self._cameras.items():

@@ -65,6 +65,9 @@ Subscriber = Callable[[Measurement], None]
 
 RECONNECT_MAX_S = 1.0  # longest wait between reconnection attempts: a device is back within ~1 s of return
 OUTAGE_REPEAT_S = 1.0  # an outage result is repeated this often while a camera is down
+# the cameras' states are looked at this often, not at every result (at 500 Hz that was ~5 % of the
+# processing thread); an outage's first result is at most this late
+OUTAGE_CHECK_S = 0.02
 STALE_PERIODS = 5  # a result older than this many frame periods is stale ...
 STALE_MIN_S = 0.5  # ... and never younger than this (scheduling jitter on a loaded machine)
 FAULT_ACTIONS = {"camera": ("unplug", "plug", "stall", "garble"), "robot": ("unplug", "plug")}
@@ -116,6 +119,7 @@ class Worker:
         # publication) and whether it is an outage notice
         self._latest_t_ns: dict[str, tuple[int, bool]] = {}
         self._outage_published_ns: dict[str, tuple[str, int]] = {}
+        self._outages_checked_ns = 0
         self.latest_frame: dict[str, tuple[Frame, Measurement]] = {}
         self._latency_ms: deque[float] = deque(maxlen=200)
         self._processing_ms: deque[float] = deque(maxlen=200)
@@ -515,6 +519,9 @@ class Worker:
 
     def _publish_outages(self) -> None:
         now = time.monotonic_ns()
+        if now - self._outages_checked_ns < OUTAGE_CHECK_S * 1e9:
+            return
+        self._outages_checked_ns = now
         for name in self.processors:
             outage = self._camera_outage(name)
             if outage is None:
