@@ -45,7 +45,7 @@ def _measure_reference(P, img_win, h, seg, full):
     circle, inner = d2 <= (h + 0.5) ** 2, d2 <= (h - 1.0) ** 2
     rim = circle & ~inner
     P = P.astype(np.float64)
-    peak = float(img_win.max())
+    peak = float(img_win[circle].max())  # the window is the circle: its corners are not looked at
     n_sat = int(np.sum(img_win[circle] >= full)) if peak >= full else 0
     # the background plane through the rim's dark pixels
     rb, ru, rv = P[rim], du[rim], dv[rim]
