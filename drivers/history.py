@@ -64,13 +64,16 @@ class RobotHistory:
         with self._lock:
             return self._sample((self._n - 1) % self.capacity) if self._n else None
 
-    def _span(self, t0_host_ns: int, t1_host_ns: int) -> np.ndarray:
-        """Buffer indices of the samples with t0 <= t_host <= t1, oldest first (the lock held).
+    def _span(self, t0_host_ns: int, t1_host_ns: int) -> tuple[slice, ...]:
+        """Buffer slices of the samples with t0 <= t_host <= t1, oldest first (the lock held): one,
+        or two where the span crosses the buffer's end.
 
         The ring holds its samples in arrival order as at most two sorted runs (before and after the
         wrap), each searched by ``np.searchsorted``: at 500 Hz the pairing asks this for every frame,
         under the lock the reader's appends wait for (a bisection in Python over the ring took 30 us
-        of it, sorting out all 5000 slots far more).
+        of it, sorting out all 5000 slots far more). Slices, not an index array: the pairing's copy of
+        a window took 17 us with
+        fancy indexing and np.searchsorted, 8-11 us now.
         """
         n, cap = len(self), self.capacity
         start = (self._n - n) % cap  # the oldest sample's slot
@@ -79,27 +82,41 @@ class RobotHistory:
         second = t[: n - first.size]  # after the wrap (empty when there is none)
 
         def position(value: int, side: Literal["left", "right"]) -> int:
-            k = int(np.searchsorted(first, value, side))
-            return k if k < first.size else first.size + int(np.searchsorted(second, value, side))
+            # the arrays' method: np.searchsorted's wrapper cost 2.7 against 0.7 us here
+            k = int(first.searchsorted(value, side))
+            return k if k < first.size else first.size + int(second.searchsorted(value, side))
 
         lo = position(t0_host_ns, "left")
         hi = max(lo, position(t1_host_ns, "right"))
-        return (start + np.arange(lo, hi)) % cap
+        a, b = start + lo, start + hi
+        if b <= cap:
+            return (slice(a, b),)
+        if a >= cap:
+            return (slice(a - cap, b - cap),)
+        return slice(a, cap), slice(0, b - cap)
+
+    @staticmethod
+    def _copy(values: np.ndarray, span: tuple[slice, ...]) -> np.ndarray:
+        return values[span[0]].copy() if len(span) == 1 else np.concatenate([values[s] for s in span])
 
     def samples_between(self, t0_host_ns: int, t1_host_ns: int) -> list[RobotSample]:
         with self._lock:
-            return [self._sample(int(i)) for i in self._span(t0_host_ns, t1_host_ns)]
+            return [
+                self._sample(i)
+                for part in self._span(t0_host_ns, t1_host_ns)
+                for i in range(*part.indices(self.capacity))
+            ]
 
     def arrays_between(self, t0_host_ns: int, t1_host_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(t_host_ns (K,), t_robot_s (K,), T_base_flange (K, 4, 4)) copies, for vectorised pairing."""
         with self._lock:
-            sel = self._span(t0_host_ns, t1_host_ns)
-            return self._t_host[sel], self._t_robot[sel], self._T[sel]  # fancy indexing copies
+            span = self._span(t0_host_ns, t1_host_ns)
+            return self._copy(self._t_host, span), self._copy(self._t_robot, span), self._copy(self._T, span)
 
     def columns_between(
         self, t0_host_ns: int, t1_host_ns: int
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`arrays_between` and the joints, q_rad (K, n_joints): a recording's copy of the samples."""
         with self._lock:
-            sel = self._span(t0_host_ns, t1_host_ns)
-            return self._t_host[sel], self._t_robot[sel], self._T[sel], self._q[sel]
+            span = self._span(t0_host_ns, t1_host_ns)
+            return tuple(self._copy(values, span) for values in (self._t_host, self._t_robot, self._T, self._q))  # type: ignore[return-value]

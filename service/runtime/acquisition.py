@@ -88,6 +88,11 @@ class Wakeup(threading.Condition):
             with contextlib.suppress(BlockingIOError):  # full: it is readable, which is all it says
                 os.write(self._pipe[1], b"\0")
 
+    def notify_waiters(self) -> None:
+        """Wake a thread waiting on the condition only: not one polling the pipe for the
+        measurements' answers, which has nothing new to do (see ``HandOver.begin_at_once``)."""
+        super().notify_all()
+
     def drain(self) -> None:
         if self._pipe is not None:
             with contextlib.suppress(BlockingIOError):

@@ -103,7 +103,9 @@ class HandOver:
                 ch.counters.dropped += 1
             self.in_flight.append(self._begin(name, frame))
             self.by_camera += 1
-            self._wakeup.notify_all()  # the processing thread waits for this outcome from now on
+            # an idle processing thread waits for this outcome from now on; one waiting for an older
+            # outcome has nothing to do before it (a wake-up a frame, ~0.1 ms of its CPU at 500 Hz)
+            self._wakeup.notify_waiters()
         return True
 
     def wait_for_outcome(self, processor: CameraProcessor) -> None:
