@@ -167,6 +167,32 @@ def test_bench_speed_reports_every_condition_of_the_matrix_beside_the_peer():
             assert len(cells) == 9 and all(c != "nan" for c in (cells[0], cells[1], cells[5])), line
 
 
+def test_bench_host_times_roi_frames_alone_and_beside_each_neighbour_and_leaves_none_running():
+    import os
+
+    r = run("bench", "host", "--frames", "30")
+    assert r.returncode == 0, r.stderr
+    rows = {line.split("|")[1].strip(): line for line in r.stdout.splitlines() if line.startswith("| ")}
+    if (os.cpu_count() or 1) < 2:
+        assert "One CPU" in r.stdout
+        return
+    for name in ("nothing", "a Python loop", "streaming memory"):
+        cells = [c.strip() for c in rows[name].split("|")[2:-1]]
+        assert float(cells[0]) > 0 and float(cells[1]) >= float(cells[0]), rows[name]  # median, p90 us
+    assert rows["nothing"].rstrip(" |").endswith("1.00"), rows["nothing"]
+    assert "Beside a busy neighbour this CPU's frame takes" in r.stdout
+    # the neighbours (stopped between their turns) are gone with the section
+    leftovers = []
+    for entry in Path("/proc").iterdir():
+        try:
+            cmdline = (entry / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"os.sched_setaffinity" in cmdline and b"while True" in cmdline:
+            leftovers.append(entry.name)
+    assert not leftovers, leftovers
+
+
 def test_unknown_verb_is_a_usage_error():
     r = run("frobnicate")
     assert r.returncode == 2 and "invalid choice" in r.stderr

@@ -38,11 +38,18 @@ def _service(args: argparse.Namespace) -> str:
     return bench_service.run(rates_hz=rates, clients=clients, seconds=args.seconds)
 
 
+def _host(args: argparse.Namespace) -> str:
+    from service.bench import host as bench_host
+
+    return bench_host.run(n_frames=args.frames, seed=args.seed)
+
+
 SECTIONS: dict[str, Callable[[argparse.Namespace], str]] = {
     "accuracy": _accuracy,
     "speed": _speed,
     "faults": _faults,
     "service": _service,
+    "host": _host,
 }
 
 

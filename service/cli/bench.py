@@ -18,9 +18,14 @@ def add_parser(subparsers: Subparsers) -> None:
         "sections",
         nargs="*",
         default=[],
-        help="sections to run (default: all): accuracy, speed, faults, service",
+        help="sections to run (default: all): accuracy, speed, faults, service, host",
     )
-    b.add_argument("--frames", type=int, default=120, help="rendered frames for the speed section")
+    b.add_argument(
+        "--frames",
+        type=int,
+        default=120,
+        help="rendered frames for the speed section; ROI frames a round for the host section",
+    )
     b.add_argument(
         "--condition-frames",
         type=int,
