@@ -168,6 +168,10 @@ class ProcessingConfig(_Section):
     # with "process": the camera's own thread hands each frame to the child as it arrives, instead of
     # waking the processing thread to do it (false: always through the processing thread)
     direct_hand_over: bool = True
+    # with "process": "dedicated" keeps each camera's child on a CPU of its own and the service's
+    # threads off those CPUs (when one CPU is left for them); "auto" does so from 100 frames/s in
+    # all; "shared": every CPU for everything (service/runtime/cpus.py)
+    measure_cpus: Literal["auto", "dedicated", "shared"] = "auto"
     # a rig's cameras are combined when their exposures lie this close (a hardware-triggered rig: ~0)
     rig_sync_tolerance_s: float = Field(0.005, gt=0, le=1, description="rig exposure pairing window, s, (0, 1]")
     code_family: Literal["posecell12", "aicon14"] = "posecell12"

@@ -153,7 +153,12 @@ def test_every_option_reaches_the_measure_settings():
 def test_the_options_are_the_processing_sections_knobs_by_name():
     options = set(inspect.signature(MeasureSettings.from_options).parameters) - {"range_mm"}
     # the section's other knobs say how the service runs the measurement, not how a frame is measured
-    assert options == set(ProcessingConfig.model_fields) - {"rig_sync_tolerance_s", "measure_in", "direct_hand_over"}
+    assert options == set(ProcessingConfig.model_fields) - {
+        "rig_sync_tolerance_s",
+        "measure_in",
+        "direct_hand_over",
+        "measure_cpus",
+    }
 
 
 @pytest.mark.parametrize(

@@ -45,6 +45,7 @@ from service.core.geometry.camera_model import BrownFraser
 from service.core.results import PoseResult, TargetTable
 from service.core.targets.field import Field
 from service.pipeline.measure import FrameMeasurer, MeasureSettings, Outcome
+from service.runtime.cpus import pin_process
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +87,7 @@ class MeasureProcess:
 
     def __init__(self, camera_name: str) -> None:
         self.camera_name = camera_name
+        self._cpus: frozenset[int] | None = None  # the child's CPUs (None: as it inherits them)
         self._setup: tuple[BrownFraser, Field, MeasureSettings] | None = None
         self._proc: Any = None
         self._conn: Connection | None = None
@@ -105,6 +107,12 @@ class MeasureProcess:
     @property
     def pid(self) -> int | None:
         return None if self._proc is None else int(self._proc.pid)
+
+    def keep_to(self, cpus: frozenset[int] | None) -> None:
+        """Run the child on ``cpus`` from now on (and every child started after it)."""
+        self._cpus = cpus
+        if cpus is not None and self._proc is not None and self._proc.pid is not None:
+            pin_process(int(self._proc.pid), cpus)
 
     def waitable(self) -> Connection | None:
         """The connection the answers arrive on (to wait for one with other files), None without a child."""
@@ -208,6 +216,8 @@ class MeasureProcess:
             self._start_failed = True
             raise MeasureProcessError(message) from None
         self._start_failed = False
+        if self._cpus is not None:
+            pin_process(int(proc.pid), self._cpus)
         child.close()
         self._proc, self._conn = proc, parent
         self._lost_frames = 0

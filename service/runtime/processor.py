@@ -83,6 +83,7 @@ class CameraProcessor:
         self.failed_reason = ""
         self._measurer: Measurer | None = None
         self._process: MeasureProcess | None = None  # the child, kept across set-up changes
+        self._cpus: frozenset[int] | None = None  # the child's CPUs (None: as it inherits them)
         self._generation = -1
         self._motion: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=600)
         self._offset: TimeOffsetFit | None = None
@@ -103,6 +104,12 @@ class CameraProcessor:
         measures: loaded at their first call they cost the first frame ~50-330 ms."""
         geometry_kernels.warm_up()
         self._current_measurer()
+
+    def keep_child_to(self, cpus: frozenset[int] | None) -> None:
+        """The CPUs of this camera's measurement child, now and for every child it starts."""
+        self._cpus = cpus
+        if self._process is not None:
+            self._process.keep_to(cpus)
 
     def close(self) -> None:
         """Stop the measurement's child process (if any)."""
@@ -152,6 +159,7 @@ class CameraProcessor:
             elif processing.measure_in == "process":
                 if self._process is None:
                     self._process = MeasureProcess(self.name)
+                    self._process.keep_to(self._cpus)
                 self._measurer = self._process
                 try:
                     self._process.configure(cal.camera, cal.field, measure_settings(processing))

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -48,7 +49,9 @@ from service.runtime.acquisition import CameraChannel, DeviceState, Wakeup
 from service.runtime.arm import ArmLease
 from service.runtime.calibration_state import CalibrationState
 from service.runtime.cell_runtime import CellRuntime, with_stated_latencies
+from service.runtime.cpus import CpuPlan, keep_to, plan_for
 from service.runtime.exposure import ExposureControl, ExposureLimits
+from service.runtime.faults import fault_target
 from service.runtime.hand_over import HandOver
 from service.runtime.handeye_session import HandEyeSession
 from service.runtime.measure_process import MeasureProcessError
@@ -70,7 +73,6 @@ OUTAGE_REPEAT_S = 1.0  # an outage result is repeated this often while a camera 
 OUTAGE_CHECK_S = 0.02
 STALE_PERIODS = 5  # a result older than this many frame periods is stale ...
 STALE_MIN_S = 0.5  # ... and never younger than this (scheduling jitter on a loaded machine)
-FAULT_ACTIONS = {"camera": ("unplug", "plug", "stall", "garble"), "robot": ("unplug", "plug")}
 
 
 @dataclass(frozen=True)
@@ -120,6 +122,8 @@ class Worker:
         self._latest_t_ns: dict[str, tuple[int, bool]] = {}
         self._outage_published_ns: dict[str, tuple[str, int]] = {}
         self._outages_checked_ns = 0
+        self._allowed_cpus = frozenset(os.sched_getaffinity(0))  # before any is kept to some of them
+        self.cpu_plan: CpuPlan | None = None
         self.latest_frame: dict[str, tuple[Frame, Measurement]] = {}
         self._latency_ms: deque[float] = deque(maxlen=200)
         self._processing_ms: deque[float] = deque(maxlen=200)
@@ -354,6 +358,7 @@ class Worker:
             self.settings = new = self.settings.with_processing(processing)
             for proc in self.processors.values():
                 proc.settings = new  # it rebuilds its measurer: the processing options are another object
+            self._plan_cpus()
 
     # --- events, subscribers ---------------------------------------------------------------------
 
@@ -433,29 +438,25 @@ class Worker:
 
         Raises LookupError when there is no simulated device to act on, ValueError for an unknown action.
         """
-        if action not in FAULT_ACTIONS.get(device, ()):
-            raise ValueError(f"device {device!r} takes the actions {FAULT_ACTIONS.get(device, ())}, not {action!r}")
-        if device == "camera":
-            name = camera or next(iter(self.cameras), None)
-            ch = self.cameras.get(name) if name is not None else None
-            if ch is None:
-                raise LookupError(f"no running camera named {name!r}; cameras: {sorted(self.cameras)}")
-            target: Any = ch.driver
-            what = f"camera {name}"
-        else:
-            target, what = self.robot, "robot"
-        if not callable(getattr(target, action, None)):
-            raise LookupError(
-                f"the {what} is not simulated in this process (sim.transport = "
-                f"{self.settings.sim.transport!r}): faults are injected into the direct simulated cell"
-            )
+        target, what = fault_target(device, action, camera, self.cameras, self.robot, self.settings.sim.transport)
         getattr(target, action)()
         self.event("warning" if action != "plug" else "info", "sim_fault", f"simulated fault: {what} {action}")
         return f"{what}: {action}"
 
     # --- processing ------------------------------------------------------------------------------
 
+    def _plan_cpus(self) -> None:
+        """Keep each measurement child and the service's threads to their CPUs (``measure_cpus``)."""
+        plan = plan_for(self.settings, list(self.cameras), self._allowed_cpus)
+        if plan != self.cpu_plan:
+            keep_to(plan, self.processors)
+            if plan.children or self.cpu_plan is not None:  # said when CPUs are dedicated or change
+                self.event("info", "cpus", f"CPUs: {plan.why}")
+            self.cpu_plan = plan
+
     def _process_loop(self) -> None:
+        with self._settings_lock:  # before the children start: the fork server and they inherit the service's CPUs
+            self._plan_cpus()
         # build the measurers first: the compiled kernels load (or, on a fresh install, compile for
         # a minute) here, while /health says "initializing", not inside the first frame's latency
         for proc in self.processors.values():
@@ -684,6 +685,7 @@ class Worker:
                 "processing_ms_median": _median(self._processing_ms),
                 "time_offset": {n: p.time_offset_report() for n, p in self.processors.items()},
                 "measurement": {n: p.measurement_report() for n, p in self.processors.items()},
+                "cpus": None if self.cpu_plan is None else self.cpu_plan.to_dict(),
             },
             "storage": storage,
         }
