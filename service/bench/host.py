@@ -8,7 +8,7 @@ the same ROI frame's CPU time on one CPU, alone and with a process on another CP
 Python loop (the kind of work the service's other threads do) or streaming memory, in
 interleaved rounds so that the machine's drift slows every row alike. (On 2026-12-05's third
 host a first, uninterleaved try suggested 2x; interleaved, the rows agreed within a few percent
-while the frame itself drifted between 0.65 and 1.25 ms within the hour: the host's own load.)
+while the frame itself drifted between 0.65 and 1.4 ms within the hour: the host's own load.)
 """
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ def run(n_frames: int, seed: int) -> str:
         f"ROI frames of the reference scene (~230 windows, resection, result) on CPU {mine}, CPU time per frame; "
         f"the neighbour on CPU {other}; {n_frames} frames a row, in {ROUNDS} interleaved rounds.",
         "",
-        "| CPU {other} runs | median us | p90 us | × alone |".replace("{other}", str(other)),
+        f"| CPU {other} runs | median us | p90 us | × alone |",
         "|---|---:|---:|---:|",
     ]
     for name, us in rows.items():
