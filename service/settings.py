@@ -177,6 +177,13 @@ class ProcessingConfig(_Section):
     code_family: Literal["posecell12", "aicon14"] = "posecell12"
     min_targets: int = Field(6, ge=4, le=100_000, description="targets needed for a pose, [4, 100 000]")
     min_coded: int = Field(4, ge=3, le=100_000, description="coded targets needed for a pose, [3, 100 000]")
+    codes_enough: int = Field(
+        12,
+        ge=0,
+        le=100_000,
+        description="full frame: rings read until this many coded targets are named, the others named "
+        "from their pose, [0, 100 000]; 0: every ring",
+    )
     sigma_px: float | None = Field(
         None, gt=0, le=10, description="a-priori image precision, px, (0, 10]; none: from the detector"
     )

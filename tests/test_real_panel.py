@@ -55,7 +55,11 @@ DISK_DIAMETER_MM = 9.9
 # would mask the targets round them as "ring pieces": no target here exceeds ~300 px.
 DETECT = DetectSettings(min_contrast_dn=40.0, min_area_px=20, max_area_px=1000)
 # The nominal camera ignores the lens's distortion (about 1 px rms): measure with that noise.
-NOMINAL_SETTINGS = MeasureSettings(detect=DETECT, code_family=AICON14, roi=False, sigma_px=1.0, max_sigma0_px=2.5)
+# every ring read (codes_enough=0), so that the misread test covers all ~45 of each image; reading the
+# default dozen is tested against it in test_code_reading
+NOMINAL_SETTINGS = MeasureSettings(
+    detect=DETECT, code_family=AICON14, roi=False, sigma_px=1.0, max_sigma0_px=2.5, codes_enough=0
+)
 CAMERA_PARAMETERS = ("c_mm", "x0_mm", "y0_mm", "K1", "K2", "K3", "P1", "P2")
 CAMERA_SCALES = np.array([1.0, 0.1, 0.1, 1e-4, 1e-6, 1e-8, 1e-5, 1e-5])  # conditioning
 
@@ -477,7 +481,9 @@ def test_real_panel_is_measured_with_default_settings_once_posecell_calibrated_t
         rejected += sum(bool(t.get("rejected")) for t in coded)
         assert max(np.hypot(*t["residual_px"]) for t in coded if not t.get("rejected")) < 0.3, path.name
     assert rejected <= 3  # of ~1000 coded targets over the images
-    assert sum(len(v) for v in readings.values()) >= 800  # about 45 rings read per image
+    # a dozen rings read per image, and more where some of them do not read (every ring, about 45 an
+    # image, in test_no_code_on_the_real_panel_is_misread)
+    assert sum(len(v) for v in readings.values()) >= 12 * 19
 
 
 def test_an_uncalibrated_camera_fails_saying_so_and_naming_the_verb(tmp_path, capsys):

@@ -53,6 +53,13 @@ def add_parser(subparsers: Subparsers) -> None:
         default=None,
         help="largest accepted sigma0 of the final adjustment, px (default 0.5)",
     )
+    m.add_argument(
+        "--codes-enough",
+        type=int,
+        default=None,
+        help="rings read until this many coded targets are named; the others are named from their "
+        "pose like the uncoded targets (default 12; 0: read every ring)",
+    )
     m.add_argument("images", nargs="+", metavar="IMAGE", help="PNG, TIFF or PGM, 8 or 16 bit")
     m.set_defaults(func=run)
 
@@ -72,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
         max_area_px=args.max_area_px,
         sigma_px=args.sigma_px,
         max_sigma0_px=args.max_sigma0_px,
+        codes_enough=args.codes_enough,
         correct_eccentricity=not args.no_eccentricity,
     )
     measurer = FrameMeasurer(camera, field, settings)

@@ -1,8 +1,9 @@
 """From a grey IR frame (or given observations) to a :class:`PoseResult`: synchronous, no threads, no I/O.
 
-Full frame (the paper's two steps): detect all blobs, decode the coded ones,
-resect from the coded targets, predict every uncoded target from that pose and
-match it to the nearest blob, then adjust over all targets with gross errors
+Full frame (the paper's two steps): detect all blobs, read coded targets' rings
+until a dozen are named, resect from them, predict every other target from that
+pose and match it to the nearest blob (again from the pose of all named, where
+that left many unnamed), then adjust over all targets with gross errors
 rejected. ROI mode: predict every target from the last poses, measure only small
 windows around the predictions, adjust from the predicted pose; fall back to the
 full frame when that fails. With a velocity the constant-velocity prediction is
@@ -33,7 +34,7 @@ from service.core.targets.decode import warm_up as decode_warm_up
 from service.core.targets.detect import Blobs, DetectSettings, detect_blobs, measure_windows
 from service.core.targets.detect_types import DTYPE_MAX
 from service.core.targets.field import Field
-from service.core.targets.identify import eccentricity_px, match_coded, match_predicted, project_field
+from service.core.targets.identify import Matches, eccentricity_px, match_coded, match_predicted, project_field
 
 Array = NDArray[np.float64]
 
@@ -100,6 +101,9 @@ class MeasureSettings:
     roi_prediction_error_px: float = 4.0  # how far a target may move from its constant-velocity prediction
     max_sigma0_px: float = 0.5
     code_family: CodeFamily = POSECELL12  # the coded targets' ring code (codes.AICON14 for AICON plates)
+    # full frame: rings read until this many coded targets of the field are named; the others are
+    # identified from that pose like the uncoded ones (0: read every ring). See _read_enough.
+    codes_enough: int = 12
     # nearest and farthest camera-to-target distance, mm: if given, blobs smaller or larger than any
     # target of the field can appear there are not measured (:func:`detect_settings_for_range`)
     range_mm: tuple[float, float] | None = None
@@ -113,6 +117,7 @@ class MeasureSettings:
         min_area_px: int | None = None,
         max_area_px: int | None = None,
         min_coded: int | None = None,
+        codes_enough: int | None = None,
         min_targets: int | None = None,
         sigma_px: float | None = None,
         max_sigma0_px: float | None = None,
@@ -143,6 +148,7 @@ class MeasureSettings:
             detect=detect,
             code_family=m.code_family if code_family is None else FAMILIES[code_family],
             min_coded=m.min_coded if min_coded is None else min_coded,
+            codes_enough=m.codes_enough if codes_enough is None else codes_enough,
             min_targets=m.min_targets if min_targets is None else min_targets,
             sigma_px=sigma_px,
             max_sigma0_px=m.max_sigma0_px if max_sigma0_px is None else max_sigma0_px,
@@ -229,6 +235,30 @@ def detect_settings_for_range(
         min_area_px=max(detect.min_area_px, min_area),
         max_area_px=max(min(detect.max_area_px, max_area), min_area + 1),
     )
+
+
+# Unnamed blobs and unnamed targets in view, each at least this many after the coded pose's
+# matching: it is done again from the pose of all named so far, while a round names more
+MORE_ROUND_MIN = 5
+MORE_ROUNDS = 6  # rounds at most after the first
+READ_MORE_MIN = 4  # rings read in a call after the first dozen (see FrameMeasurer._read_enough)
+READING_GRID = 3  # cells across and down the image that reading_order takes its turns over
+
+
+def reading_order(ellipse_px: Array, shape: tuple[int, ...]) -> NDArray[np.intp]:
+    """An order to read coded targets' rings in: the largest disk of each cell of a
+    READING_GRID x READING_GRID grid over the image, then the next largest of each, and so on.
+
+    Large disks read most surely; spread over the image, the first dozen give a pose that predicts
+    the far targets as well as the near ones (a dozen in one corner would extrapolate).
+    ``ellipse_px`` (N, 5) is (u, v, a, b, angle) px; ``shape`` the image's (H, W)."""
+    h, w = shape[0], shape[1]
+    g = READING_GRID
+    cell = np.clip(g * ellipse_px[:, 0] // w, 0, g - 1) + g * np.clip(g * ellipse_px[:, 1] // h, 0, g - 1)
+    by_cell = np.lexsort((-ellipse_px[:, 2] * ellipse_px[:, 3], cell))  # by cell, largest first in each
+    sorted_cell = cell[by_cell]
+    rank = np.arange(by_cell.size) - np.searchsorted(sorted_cell, sorted_cell)  # place within its cell
+    return by_cell[np.lexsort((sorted_cell, rank))]
 
 
 def _full_dn(image: NDArray[np.generic], detect: DetectSettings) -> float:
@@ -383,12 +413,7 @@ class FrameMeasurer:
                 Reason.too_few_targets,
                 f"{len(blobs)} targets found in the image, at least {s.min_coded} coded ones are needed",
             )
-        # only a blob the detector found ring pieces around can be coded: read just those
-        ringed = np.flatnonzero(blobs.has_ring)
-        readings = read_codes(image, blobs.ellipse[ringed], blobs.background_dn[ringed], family=s.code_family)
-        codes_read = np.full(len(blobs), -1, dtype=np.int64)
-        codes_read[ringed] = [-1 if r is None else r.code for r in readings]
-        coded = match_coded(self.field, codes_read)
+        coded = self._read_enough(image, blobs, np.shape(image))
         clock.lap("decode")
         if len(coded.rows) < s.min_coded:
             raise SolveError(
@@ -407,12 +432,75 @@ class FrameMeasurer:
         taken = np.zeros(len(blobs), bool)
         taken[coded_blobs] = True
         m = match_predicted(uv_pred[todo], rows[todo], blobs.uv, s.match_tolerance_px, taken)
-        clock.lap("identify")
         all_rows = np.concatenate([coded_rows, m.rows])
         all_blobs = np.concatenate([coded_blobs, m.blobs])
+        T_named = res.T_field_camera
+        # unnamed blobs where targets in view went unnamed: the coded targets' pose predicted them
+        # too far off (an approximate camera, the coded targets read on one side); again from the
+        # pose of all named so far, while that names more
+        unnamed = min(len(blobs) - len(all_blobs), int(todo.sum()) - len(m.rows))
+        for _ in range(MORE_ROUNDS if unnamed >= MORE_ROUND_MIN else 0):
+            n_named = len(all_rows)
+            all_rows, all_blobs, T_named = self._another_round(blobs, all_rows, all_blobs, T_named)
+            if len(all_rows) == n_named:
+                break
+        clock.lap("identify")
         if len(all_rows) < s.min_targets:
             raise SolveError(Reason.too_few_targets, f"only {len(all_rows)} targets identified")
-        return self._finish(all_rows, blobs.uv[all_blobs], res.T_field_camera, clock)
+        return self._finish(all_rows, blobs.uv[all_blobs], T_named, clock)
+
+    def _another_round(
+        self, blobs: Blobs, rows: NDArray[np.int64], blob_of: NDArray[np.int64], T_coded: Array
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], Array]:
+        """The paper's second step again, from the pose of the targets ``rows`` named so far (as
+        blobs ``blob_of``): the field rows and blobs named in all, and the pose they were predicted
+        from (``T_coded`` unchanged if that pose fails)."""
+        s = self.settings
+        try:
+            res = resect(
+                self.camera,
+                self.field.xyz[rows],
+                blobs.uv[blob_of],
+                T_field_camera_init=T_coded,
+                sigma_px=s.sigma_px,
+                max_sigma_px=s.max_sigma0_px,
+            )
+        except SolveError:
+            return rows, blob_of, T_coded
+        named = np.zeros(len(self.field), dtype=bool)
+        named[rows] = True
+        taken = np.zeros(len(blobs), dtype=bool)
+        taken[blob_of] = True
+        more_rows, uv_pred = project_field(self.camera, self.field, res.T_field_camera, margin_px=-2.0)
+        todo = ~named[more_rows]
+        m = match_predicted(uv_pred[todo], more_rows[todo], blobs.uv, s.match_tolerance_px, taken)
+        return np.concatenate([rows, m.rows]), np.concatenate([blob_of, m.blobs]), res.T_field_camera
+
+    def _read_enough(self, image: NDArray[np.generic], blobs: Blobs, shape: tuple[int, ...]) -> Matches:
+        """The coded targets named by their rings, read in :func:`reading_order` until
+        ``codes_enough`` of them are matched to the field (0: every ring).
+
+        Only a blob the detector found ring pieces around can be coded. Reading a ring costs ~50 us
+        (a third of a reference frame for its 30); the paper's second step names the unread ones
+        from the pose of the first dozen just as it names the uncoded targets, and they are as
+        "coded" in the result (the field's kind of target, not how it was named). When some of
+        the first dozen are not read, twice as many more as are missing are read next (at least
+        READ_MORE_MIN: a call costs ~20 us of its own), and so on."""
+        s = self.settings
+        ringed = np.flatnonzero(blobs.has_ring)
+        order = ringed[reading_order(blobs.ellipse[ringed], shape)]
+        enough = s.codes_enough if s.codes_enough > 0 else order.size
+        codes_read = np.full(len(blobs), -1, dtype=np.int64)
+        coded = Matches(np.zeros(0, np.int64), np.zeros(0, np.int64))
+        done, want = 0, enough
+        while done < order.size and len(coded.rows) < enough:
+            batch = order[done : done + want]
+            readings = read_codes(image, blobs.ellipse[batch], blobs.background_dn[batch], family=s.code_family)
+            codes_read[batch] = [-1 if r is None else r.code for r in readings]
+            coded = match_coded(self.field, codes_read)
+            done += batch.size
+            want = max(READ_MORE_MIN, 2 * (enough - len(coded.rows)))
+        return coded
 
     def _measure_roi(self, image: NDArray[np.generic], T_pred: Array, slack: float = 1.0) -> Outcome | None:
         s = self.settings

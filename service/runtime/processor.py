@@ -47,6 +47,7 @@ def measure_settings(p: ProcessingConfig) -> MeasureSettings:
         min_area_px=p.min_area_px,
         max_area_px=p.max_area_px,
         min_coded=p.min_coded,
+        codes_enough=p.codes_enough,
         min_targets=p.min_targets,
         sigma_px=p.sigma_px,
         max_sigma0_px=p.max_sigma0_px,
