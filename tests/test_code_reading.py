@@ -103,6 +103,18 @@ def test_a_first_dozen_with_unread_rings_sends_the_reader_on_to_the_rest(monkeyp
     assert result.n_coded >= 25  # the three unread ones too, named from the pose
 
 
+def test_a_pose_that_needs_more_coded_targets_than_a_dozen_reads_as_many(monkeypatch):
+    # min_coded 20 with codes_enough 12: twenty are read before the frame is judged, not refused
+    # with rings left unread
+    camera, field = reference_camera(), reference_field()
+    T = reference_pose(view_angle_deg=85.0, distance_mm=1000.0)
+    frame = render_frame(camera, field, T, RenderSettings(exposure_scale=0.8), np.random.default_rng(9))
+    n_read = _spy_rings(monkeypatch)
+    result = FrameMeasurer(camera, field, MeasureSettings(min_coded=20)).measure(frame.image).result
+    assert isinstance(result, PoseResult), result
+    assert n_read[0] == 20
+
+
 PANEL = "micmac-circ-code-target"
 
 

@@ -478,7 +478,7 @@ class FrameMeasurer:
 
     def _read_enough(self, image: NDArray[np.generic], blobs: Blobs, shape: tuple[int, ...]) -> Matches:
         """The coded targets named by their rings, read in :func:`reading_order` until
-        ``codes_enough`` of them are matched to the field (0: every ring).
+        ``codes_enough`` of them (and ``min_coded``) are matched to the field (0: every ring).
 
         Only a blob the detector found ring pieces around can be coded. Reading a ring costs ~50 us
         (a third of a reference frame for its 30); the paper's second step names the unread ones
@@ -489,7 +489,8 @@ class FrameMeasurer:
         s = self.settings
         ringed = np.flatnonzero(blobs.has_ring)
         order = ringed[reading_order(blobs.ellipse[ringed], shape)]
-        enough = s.codes_enough if s.codes_enough > 0 else order.size
+        # never fewer than a pose needs (min_coded): a frame is not refused with rings left unread
+        enough = max(s.codes_enough, s.min_coded) if s.codes_enough > 0 else order.size
         codes_read = np.full(len(blobs), -1, dtype=np.int64)
         coded = Matches(np.zeros(0, np.int64), np.zeros(0, np.int64))
         done, want = 0, enough
