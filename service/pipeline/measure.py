@@ -434,39 +434,39 @@ class FrameMeasurer:
         m = match_predicted(uv_pred[todo], rows[todo], blobs.uv, s.match_tolerance_px, taken)
         all_rows = np.concatenate([coded_rows, m.rows])
         all_blobs = np.concatenate([coded_blobs, m.blobs])
-        T_named = res.T_field_camera
+        T_field_camera = res.T_field_camera
         # unnamed blobs where targets in view went unnamed: the coded targets' pose predicted them
         # too far off (an approximate camera, the coded targets read on one side); again from the
         # pose of all named so far, while that names more
         unnamed = min(len(blobs) - len(all_blobs), int(todo.sum()) - len(m.rows))
         for _ in range(MORE_ROUNDS if unnamed >= MORE_ROUND_MIN else 0):
             n_named = len(all_rows)
-            all_rows, all_blobs, T_named = self._another_round(blobs, all_rows, all_blobs, T_named)
+            all_rows, all_blobs, T_field_camera = self._another_round(blobs, all_rows, all_blobs, T_field_camera)
             if len(all_rows) == n_named:
                 break
         clock.lap("identify")
         if len(all_rows) < s.min_targets:
             raise SolveError(Reason.too_few_targets, f"only {len(all_rows)} targets identified")
-        return self._finish(all_rows, blobs.uv[all_blobs], T_named, clock)
+        return self._finish(all_rows, blobs.uv[all_blobs], T_field_camera, clock)
 
     def _another_round(
-        self, blobs: Blobs, rows: NDArray[np.int64], blob_of: NDArray[np.int64], T_coded: Array
+        self, blobs: Blobs, rows: NDArray[np.int64], blob_of: NDArray[np.int64], T_field_camera_start: Array
     ) -> tuple[NDArray[np.int64], NDArray[np.int64], Array]:
         """The paper's second step again, from the pose of the targets ``rows`` named so far (as
         blobs ``blob_of``): the field rows and blobs named in all, and the pose they were predicted
-        from (``T_coded`` unchanged if that pose fails)."""
+        from (``T_field_camera_start``, the pose they were named from, if that pose fails)."""
         s = self.settings
         try:
             res = resect(
                 self.camera,
                 self.field.xyz[rows],
                 blobs.uv[blob_of],
-                T_field_camera_init=T_coded,
+                T_field_camera_init=T_field_camera_start,
                 sigma_px=s.sigma_px,
                 max_sigma_px=s.max_sigma0_px,
             )
         except SolveError:
-            return rows, blob_of, T_coded
+            return rows, blob_of, T_field_camera_start
         named = np.zeros(len(self.field), dtype=bool)
         named[rows] = True
         taken = np.zeros(len(blobs), dtype=bool)
