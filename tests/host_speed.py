@@ -20,7 +20,12 @@ ROOM = 0.6  # of the period: a host that renders within it must show no gap
 
 @lru_cache(maxsize=1)
 def sim_render_ms() -> float:
-    """The median time of three renders of the simulated cell's frame in this process, ms."""
+    """The median time of three renders of the simulated cell's frame in this process, ms (the
+    first measurement in the process: see :func:`allowed_gaps` for the one taken at the check)."""
+    return _render_ms()
+
+
+def _render_ms() -> float:
     from service.sim.cell import CellConfig, SimCell
     from service.sim.render import RenderSettings
 
@@ -39,5 +44,10 @@ def allowed_gaps(n_frames: int) -> int:
     0, or a sixth of them (at least 2) where a render takes more than ROOM of the period (4 of 60
     seen under the whole suite on a slow 2-core VM; 5 of 41 on 2026-12-05's slower one, whose
     render takes 40 ms of the 50; rendering under the service's interpreter lock, the regression
-    these tests are there for, skips half or more)."""
-    return 0 if sim_render_ms() < ROOM * PERIOD_MS else max(2, n_frames // 6)
+    these tests are there for, skips half or more).
+
+    The render is timed when the process first asks and again now, and the slower counts: the same
+    VM renders ~1.7x slower for stretches of seconds to minutes (a stream that had no room while the
+    first timing said it had: 2 gaps in 44 frames, 18.3 fps)."""
+    render_ms = max(sim_render_ms(), _render_ms())
+    return 0 if render_ms < ROOM * PERIOD_MS else max(2, n_frames // 6)
