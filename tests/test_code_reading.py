@@ -123,15 +123,10 @@ def test_real_panel_with_an_uncalibrated_camera_names_as_many_targets_from_a_doz
     names as many targets in all as reading every ring, each image within a few percent, from a
     quarter of the rings. Without further rounds of matching from the pose of all named so far,
     one image named 85 targets instead of 139 (the dozen's pose predicts the far ones pixels off)."""
-    from tests.test_real_panel import DISK_DIAMETER_MM, NOMINAL_CAMERA, NOMINAL_SETTINGS, POSITIONS
+    from tests.test_real_panel import NOMINAL_CAMERA, NOMINAL_SETTINGS, panel_field
 
     data = shared_data(PANEL)
-    field = formats.field_from_aicon_txt(
-        (data / POSITIONS).read_text(),
-        POSITIONS,
-        coded_diameter_mm=DISK_DIAMETER_MM,
-        uncoded_diameter_mm=DISK_DIAMETER_MM,
-    )
+    field = panel_field()
     n_read = _spy_rings(monkeypatch)
     counts = {}
     for codes_enough in (0, 12):

@@ -236,16 +236,22 @@ def fit_camera(field, views, camera: BrownFraser) -> BrownFraser:
     return camera_of(sol.x)
 
 
-@pytest.fixture(scope="module")
-def panel():
-    """Every image measured once with the nominal camera; cameras fitted on each half; poses."""
+def panel_field():
+    """The panel's surveyed targets (its AICON point list), every disk DISK_DIAMETER_MM across."""
     data = shared_data(DATA)
-    field = formats.field_from_aicon_txt(
+    return formats.field_from_aicon_txt(
         (data / POSITIONS).read_text(),
         POSITIONS,
         coded_diameter_mm=DISK_DIAMETER_MM,
         uncoded_diameter_mm=DISK_DIAMETER_MM,
     )
+
+
+@pytest.fixture(scope="module")
+def panel():
+    """Every image measured once with the nominal camera; cameras fitted on each half; poses."""
+    data = shared_data(DATA)
+    field = panel_field()
     measurer = FrameMeasurer(NOMINAL_CAMERA, field, NOMINAL_SETTINGS)
     frames = []
     for path in sorted((data / "images").glob("*_Scaled.tif")):

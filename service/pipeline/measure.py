@@ -422,59 +422,49 @@ class FrameMeasurer:
                 {"n_blobs": len(blobs), "n_coded": len(coded.rows)},
             )
         res = resect(self.camera, self.field.xyz[coded.rows], blobs.uv[coded.blobs], sigma_px=s.sigma_px)
-        coded_rows = coded.rows[res.inliers]
-        coded_blobs = coded.blobs[res.inliers]
         # the paper's second step: every other target, predicted from the coded pose
-        rows, uv_pred = project_field(self.camera, self.field, res.T_field_camera, margin_px=-2.0)
-        todo = np.ones(len(self.field), dtype=bool)
-        todo[coded_rows] = False
-        todo = todo[rows]
-        taken = np.zeros(len(blobs), bool)
-        taken[coded_blobs] = True
-        m = match_predicted(uv_pred[todo], rows[todo], blobs.uv, s.match_tolerance_px, taken)
-        all_rows = np.concatenate([coded_rows, m.rows])
-        all_blobs = np.concatenate([coded_blobs, m.blobs])
         T_field_camera = res.T_field_camera
+        rows, blob_of, unnamed = self._name_from(
+            blobs, coded.rows[res.inliers], coded.blobs[res.inliers], T_field_camera
+        )
         # unnamed blobs where targets in view went unnamed: the coded targets' pose predicted them
         # too far off (an approximate camera, the coded targets read on one side); again from the
         # pose of all named so far, while that names more
-        unnamed = min(len(blobs) - len(all_blobs), int(todo.sum()) - len(m.rows))
-        for _ in range(MORE_ROUNDS if unnamed >= MORE_ROUND_MIN else 0):
-            n_named = len(all_rows)
-            all_rows, all_blobs, T_field_camera = self._another_round(blobs, all_rows, all_blobs, T_field_camera)
-            if len(all_rows) == n_named:
+        for _ in range(MORE_ROUNDS if min(len(blobs) - len(blob_of), unnamed) >= MORE_ROUND_MIN else 0):
+            try:
+                T_field_camera = resect(
+                    self.camera,
+                    self.field.xyz[rows],
+                    blobs.uv[blob_of],
+                    T_field_camera_init=T_field_camera,
+                    sigma_px=s.sigma_px,
+                    max_sigma_px=s.max_sigma0_px,
+                ).T_field_camera
+            except SolveError:
+                break
+            n_named = len(rows)
+            rows, blob_of, _ = self._name_from(blobs, rows, blob_of, T_field_camera)
+            if len(rows) == n_named:
                 break
         clock.lap("identify")
-        if len(all_rows) < s.min_targets:
-            raise SolveError(Reason.too_few_targets, f"only {len(all_rows)} targets identified")
-        return self._finish(all_rows, blobs.uv[all_blobs], T_field_camera, clock)
+        if len(rows) < s.min_targets:
+            raise SolveError(Reason.too_few_targets, f"only {len(rows)} targets identified")
+        return self._finish(rows, blobs.uv[blob_of], T_field_camera, clock)
 
-    def _another_round(
-        self, blobs: Blobs, rows: NDArray[np.int64], blob_of: NDArray[np.int64], T_field_camera_start: Array
-    ) -> tuple[NDArray[np.int64], NDArray[np.int64], Array]:
-        """The paper's second step again, from the pose of the targets ``rows`` named so far (as
-        blobs ``blob_of``): the field rows and blobs named in all, and the pose they were predicted
-        from (``T_field_camera_start``, the pose they were named from, if that pose fails)."""
-        s = self.settings
-        try:
-            res = resect(
-                self.camera,
-                self.field.xyz[rows],
-                blobs.uv[blob_of],
-                T_field_camera_init=T_field_camera_start,
-                sigma_px=s.sigma_px,
-                max_sigma_px=s.max_sigma0_px,
-            )
-        except SolveError:
-            return rows, blob_of, T_field_camera_start
+    def _name_from(
+        self, blobs: Blobs, rows: NDArray[np.int64], blob_of: NDArray[np.int64], T_field_camera: Array
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
+        """The paper's second step from the pose ``T_field_camera``: each target in view not among
+        the field ``rows`` named so far, predicted and matched one to one to a blob not among
+        ``blob_of``. Returns the rows and blobs named in all, and the targets in view left unnamed."""
         named = np.zeros(len(self.field), dtype=bool)
         named[rows] = True
         taken = np.zeros(len(blobs), dtype=bool)
         taken[blob_of] = True
-        more_rows, uv_pred = project_field(self.camera, self.field, res.T_field_camera, margin_px=-2.0)
-        todo = ~named[more_rows]
-        m = match_predicted(uv_pred[todo], more_rows[todo], blobs.uv, s.match_tolerance_px, taken)
-        return np.concatenate([rows, m.rows]), np.concatenate([blob_of, m.blobs]), res.T_field_camera
+        in_view, uv_pred = project_field(self.camera, self.field, T_field_camera, margin_px=-2.0)
+        todo = ~named[in_view]
+        m = match_predicted(uv_pred[todo], in_view[todo], blobs.uv, self.settings.match_tolerance_px, taken)
+        return np.concatenate([rows, m.rows]), np.concatenate([blob_of, m.blobs]), int(todo.sum()) - len(m.rows)
 
     def _read_enough(self, image: NDArray[np.generic], blobs: Blobs, shape: tuple[int, ...]) -> Matches:
         """The coded targets named by their rings, read in :func:`reading_order` until
