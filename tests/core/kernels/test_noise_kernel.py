@@ -5,7 +5,8 @@ sampled residuals: each integer residual spread uniformly over its bin, the quan
 inverse of that distribution, the two clipped rounds of the module docstring; that agrees to
 round-off. Then with what it estimates: on Gaussian noise the robust sigma of all the tile's
 pixels by ``np.median`` (1.4826 MAD) and the true sigma, within the sampling error of its 512
-samples. ``box_peak_kernel`` is ``ndarray.max`` over each box.
+samples. ``box_peak_kernel`` is ``ndarray.max`` over each box; ``cell_threshold_kernel`` the
+compare with each pixel's cell threshold spread over the frame by ``np.repeat``.
 """
 
 from __future__ import annotations
@@ -13,7 +14,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.core._kernels.noise_kernel import CLIP_SIGMA, IQR_TO_SIGMA, box_peak_kernel, tile_noise_kernel
+from service.core._kernels.noise_kernel import (
+    CLIP_SIGMA,
+    IQR_TO_SIGMA,
+    box_peak_kernel,
+    cell_threshold_kernel,
+    tile_noise_kernel,
+)
 
 STEP, TILE, SUB_V = 8, 64, 4  # as detect_background passes them
 
@@ -143,3 +150,20 @@ def test_box_peak_is_the_maximum_over_each_box(rng, dtype):
     ref = [img[box[c, 1] : box[c, 3] + 1, box[c, 0] : box[c, 2] + 1].max() for c in which]
     np.testing.assert_array_equal(got, np.array(ref, dtype=np.float64))
     assert box_peak_kernel(img, box, np.zeros(0, np.intp)).shape == (0,)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize("shape", [(64, 48), (70, 53), (9, 8)])  # whole cells; rows and columns beyond them
+def test_cell_threshold_is_the_compare_with_each_pixels_cell(rng, dtype, shape):
+    top = 250 if dtype == np.uint8 else 60000
+    img = rng.integers(0, top, shape).astype(dtype)
+    hs, ws = shape[0] // STEP, shape[1] // STEP
+    thr = rng.integers(0, top, (hs, ws)).astype(dtype)
+    cells = np.repeat(np.repeat(thr, STEP, 0), STEP, 1)
+    cells = np.pad(cells, ((0, shape[0] - cells.shape[0]), (0, shape[1] - cells.shape[1])), mode="edge")
+    img[::3] = cells[::3]  # equal to the threshold: not above it
+    img.flags.writeable = False  # a replayed frame is read-only
+    out = np.full(shape, 7, dtype=np.uint8)
+    got = cell_threshold_kernel(img, thr, STEP, out)
+    assert got is out
+    np.testing.assert_array_equal(got, np.where(img > cells, 255, 0).astype(np.uint8))
