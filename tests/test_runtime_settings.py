@@ -151,7 +151,8 @@ def test_every_option_reaches_the_measure_settings():
 
 
 def test_the_options_are_the_processing_sections_knobs_by_name():
-    options = set(inspect.signature(MeasureSettings.from_options).parameters) - {"range_mm"}
+    # range_mm is the calibration's; bit_depth the camera's (the pixel format its driver reports)
+    options = set(inspect.signature(MeasureSettings.from_options).parameters) - {"range_mm", "bit_depth"}
     # the section's other knobs say how the service runs the measurement, not how a frame is measured
     assert options == set(ProcessingConfig.model_fields) - {
         "rig_sync_tolerance_s",

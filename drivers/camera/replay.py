@@ -4,7 +4,8 @@ Sources (``options = { source = ... }``):
 
 - a folder: every ``*.png``, ``*.tif``/``*.tiff`` and ``*.pgm`` in it (not in sub-folders),
   8 or 16 bit grey (colour is converted to grey), read at ``open`` with
-  ``cv2.imread(..., cv2.IMREAD_UNCHANGED)`` into memory and played in name order.
+  ``cv2.imread(..., cv2.IMREAD_UNCHANGED)`` into memory and played in name order; 16-bit frames
+  are reported as ``Mono12`` when none passes 4095 (a 12-bit camera's), else ``Mono16``.
   An optional ``timestamps.csv`` beside them gives each frame's device time: the
   header ``file,t_ns`` (whole ns; ``name`` for ``file`` and ``t_s`` seconds for ``t_ns``
   are accepted too, as in ``posecell calibrate``'s camera folders; other columns are
@@ -170,7 +171,11 @@ def load_folder(folder: Path) -> _Recording:
         t_ns = _read_timestamps(folder / TIMESTAMPS_FILE, names)
         if len(t_ns) > 1:
             loop_ns = int(t_ns[-1] - t_ns[0] + np.median(np.diff(t_ns)))
-    formats = ("Mono8",) if first.dtype == np.uint8 else ("Mono16", "Mono12")
+    # 16-bit frames that never pass 4095 are a 12-bit camera's (a posecell recording of a Mono12
+    # camera): reported as Mono12, so that the measurement takes their 12 bits
+    formats = (
+        ("Mono8",) if first.dtype == np.uint8 else ("Mono12", "Mono16") if frames.max() < 4096 else ("Mono16", "Mono12")
+    )
     frames.flags.writeable = False  # lent to every frame as it is (see ReplayCamera._frame)
     extra = _recorded_columns(folder / TIMESTAMPS_FILE, names) if t_ns is not None else (None, None)
     return _Recording(frames, t_ns, loop_ns, [{"file": n} for n in names], formats, None, *extra)

@@ -60,6 +60,15 @@ def add_parser(subparsers: Subparsers) -> None:
         help="rings read until this many coded targets are named; the others are named from their "
         "pose like the uncoded targets (default 12; 0: read every ring)",
     )
+    m.add_argument(
+        "--bit-depth",
+        type=int,
+        choices=range(8, 17),
+        default=None,
+        metavar="8-16",
+        help="significant bits of the images, which sets their saturation level: 12 for a 12-bit camera's "
+        "frames saved as 16-bit images with values up to 4095 (default: 8 or 16, the file's)",
+    )
     m.add_argument("images", nargs="+", metavar="IMAGE", help="PNG, TIFF or PGM, 8 or 16 bit")
     m.set_defaults(func=run)
 
@@ -80,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
         sigma_px=args.sigma_px,
         max_sigma0_px=args.max_sigma0_px,
         codes_enough=args.codes_enough,
+        bit_depth=args.bit_depth,
         correct_eccentricity=not args.no_eccentricity,
     )
     measurer = FrameMeasurer(camera, field, settings)

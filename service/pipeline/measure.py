@@ -124,6 +124,7 @@ class MeasureSettings:
         correct_eccentricity: bool = True,
         roi_tracking: bool = True,
         range_mm: tuple[float, float] | None = None,
+        bit_depth: int | None = None,
     ) -> MeasureSettings:
         """The settings of the measuring options as the service's ``[processing]`` section, ``posecell
         measure`` and ``posecell calibrate camera`` name them (the one mapping of those knobs).
@@ -132,13 +133,19 @@ class MeasureSettings:
         (8-bit DN), ``min_area_px`` and ``max_area_px`` (px), this class's for the others;
         ``sigma_px`` (px) None is its default, the detector's own precision. ``code_family`` is a name of
         :data:`service.core.targets.codes.FAMILIES`; ``roi_tracking`` is :attr:`roi`; ``range_mm``
-        (nearest, farthest; mm) narrows the area limits to the field's targets.
+        (nearest, farthest; mm) narrows the area limits to the field's targets. ``bit_depth`` (8-16)
+        is the images' significant bits, so their saturation level (``2 ** bit_depth - 1``, which the
+        8-bit levels scale to): a 12-bit camera's frames come as uint16 whose values end at 4095; None:
+        the image dtype's maximum.
         """
         if code_family is not None and code_family not in FAMILIES:
             raise ValueError(f"unknown code family {code_family!r}; choose from {', '.join(FAMILIES)}")
+        if bit_depth is not None and not 8 <= bit_depth <= 16:
+            raise ValueError(f"bit_depth must be 8 to 16, got {bit_depth}")
         d, m = DetectSettings(), cls()  # the defaults, each written once: in those classes
         detect = replace(
             d,
+            saturation_dn=d.saturation_dn if bit_depth is None else float(2**bit_depth - 1),
             min_contrast_dn=d.min_contrast_dn if min_contrast_dn is None else min_contrast_dn,
             min_area_px=d.min_area_px if min_area_px is None else min_area_px,
             max_area_px=d.max_area_px if max_area_px is None else max_area_px,

@@ -158,6 +158,9 @@ class CameraChannel:
         self._connected_ns = time.monotonic_ns()
         self.command_error: dict[int, str] = {}
         self.exposure_refused = ""  # the driver's sentence when it refused an exposure step
+        # what the camera delivers, as its driver says once it is configured (the measurement's full
+        # scale: a Mono12 frame's values end at 4095, not at its uint16's 65535); None: not known yet
+        self.pixel_format: str | None = None
 
     def start(self) -> None:
         self._thread.start()
@@ -211,9 +214,16 @@ class CameraChannel:
             self._set_state(DeviceState.disconnected, str(e))
             return False
         self._connected_ns = time.monotonic_ns()
+        self._note_pixel_format()
         self._set_state(DeviceState.ok)
         self._last_seq = None
         return True
+
+    def _note_pixel_format(self) -> None:
+        try:
+            self.pixel_format = self.driver.info.pixel_format
+        except (DriverError, AttributeError):  # a driver that cannot say: the frame's dtype decides
+            self.pixel_format = None
 
     def _run_commands(self) -> None:
         while True:
@@ -228,6 +238,7 @@ class CameraChannel:
                     self.driver.configure(arg)
                     self.settings = arg
                     self._last_seq = None
+                    self._note_pixel_format()
                 elif kind == "exposure":  # an exposure step: the frame counter runs on, gaps are still gaps
                     new = replace(self.settings, exposure_us=arg)
                     self.driver.configure(new)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
@@ -38,10 +39,15 @@ from service.runtime.measure_process import DEPTH, MeasureProcess, Measurer
 from service.runtime.pairing import FramePairer
 from service.settings import CameraConfig, ProcessingConfig, Settings
 
+# significant bits of the pixel formats a camera may deliver (GenICam: unpacked, the low bits)
+BIT_DEPTH = {"Mono8": 8, "Mono10": 10, "Mono12": 12, "Mono14": 14, "Mono16": 16}
 
-def measure_settings(p: ProcessingConfig) -> MeasureSettings:
-    """The measurer's settings of the ``[processing]`` options (the mapping is :meth:`MeasureSettings.from_options`)."""
+
+def measure_settings(p: ProcessingConfig, bit_depth: int | None = None) -> MeasureSettings:
+    """The measurer's settings of the ``[processing]`` options (the mapping is :meth:`MeasureSettings.from_options`)
+    for frames of ``bit_depth`` significant bits (None: their dtype's)."""
     return MeasureSettings.from_options(
+        bit_depth=bit_depth,
         code_family=p.code_family,
         min_contrast_dn=p.min_contrast_dn,
         min_area_px=p.min_area_px,
@@ -72,8 +78,16 @@ class Pending:
 class CameraProcessor:
     """Measures the frames of one camera (called from the worker's processing thread only)."""
 
-    def __init__(self, name: str, settings: Settings, calibration: CalibrationState) -> None:
+    def __init__(
+        self,
+        name: str,
+        settings: Settings,
+        calibration: CalibrationState,
+        pixel_format: Callable[[], str | None] = lambda: None,
+    ) -> None:
         self.name = name
+        self.pixel_format = pixel_format  # what the camera delivers, as its driver says (None: not known)
+        self._bit_depth: int | None = None  # the frames' significant bits the measurer was built for
         # the worker's current settings (frozen): the worker puts the new object here on a change, and
         # the measurer is rebuilt before the next frame when its processing options are another object
         self.settings = settings
@@ -148,13 +162,15 @@ class CameraProcessor:
             and processing.measure_in == "process"
             and cal.generation == self._generation
             and processing is self._processing
+            and BIT_DEPTH.get(self.pixel_format() or "") == self._bit_depth
             and self._process.can_submit()
         )
 
     def _current_measurer(self) -> Measurer | None:
         cal, processing = self.calibration, self.settings.processing
-        if cal.generation != self._generation or processing is not self._processing:
-            self._generation, self._processing = cal.generation, processing
+        bits = BIT_DEPTH.get(self.pixel_format() or "")
+        if cal.generation != self._generation or processing is not self._processing or bits != self._bit_depth:
+            self._generation, self._processing, self._bit_depth = cal.generation, processing, bits
             if cal.camera is None or cal.field is None:
                 self._measurer = None
             elif processing.measure_in == "process":
@@ -163,13 +179,13 @@ class CameraProcessor:
                     self._process.keep_to(self._cpus)
                 self._measurer = self._process
                 try:
-                    self._process.configure(cal.camera, cal.field, measure_settings(processing))
+                    self._process.configure(cal.camera, cal.field, measure_settings(processing, bits))
                 except Exception:
                     self._generation = -1  # set up again with the next frame
                     raise
             else:
                 self.close()
-                self._measurer = FrameMeasurer(cal.camera, cal.field, measure_settings(processing))
+                self._measurer = FrameMeasurer(cal.camera, cal.field, measure_settings(processing, bits))
         return self._measurer
 
     def process(self, frame: Frame, robot: RobotDriver | None, robot_state: DeviceState) -> Measurement:

@@ -241,7 +241,9 @@ class Worker:
         )
         self.cameras[cfg.name] = ch
         self._set_exposure_control(cfg)
-        self.processors[cfg.name] = CameraProcessor(cfg.name, self.settings, self.calibration)
+        self.processors[cfg.name] = CameraProcessor(
+            cfg.name, self.settings, self.calibration, pixel_format=lambda: ch.pixel_format
+        )
         ch.start()
 
     def _supervise_robot(self) -> None:

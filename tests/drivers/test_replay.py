@@ -187,6 +187,23 @@ def test_sixteen_bit_frames_are_cropped_to_the_roi_and_keep_their_depth(tmp_path
         cam.close()
 
 
+def test_sixteen_bit_frames_that_never_pass_4095_are_a_12_bit_cameras(tmp_path):
+    # a recording of a Mono12 camera (its values in a uint16's low 12 bits) replays as Mono12, so that
+    # the service measures it with 12 bits (tests/test_bit_depth.py); brighter frames are Mono16
+    for name, top, want in (("deep", 65535, "Mono16"), ("twelve", 4095, "Mono12")):
+        folder = tmp_path / name
+        folder.mkdir()
+        for path in write_frames(folder, n=2, shape=(30, 50), dtype=np.uint16):
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            cv2.imwrite(str(path), (image.astype(np.float64) * top / 65535).round().astype(np.uint16))
+        cam = opened(folder)
+        try:
+            assert cam.info.pixel_format == want
+            assert cam.fetch(timeout_s=1.0).image.max() <= top
+        finally:
+            cam.close()
+
+
 def test_settings_a_recording_cannot_follow_are_refused_and_the_strobe_is_ignored(folder):
     cam = opened(folder)
     try:

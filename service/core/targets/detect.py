@@ -27,7 +27,9 @@ This module puts them together and checks the input; the settings and results ar
 Pixel convention (DESIGN section 2): the centre of the top-left pixel is (0, 0).
 ``min_contrast_dn`` is in 8-bit DN, scaled by ``full_scale / 255`` (the
 saturation level, by default the dtype's maximum), so the defaults suit 8-,
-12- and 16-bit images.
+12- and 16-bit images given their saturation level: a 12-bit camera's uint16 frames end at 4095
+(``saturation_dn``; ``MeasureSettings.from_options(bit_depth=12)``, which the service sets from
+the camera's pixel format).
 """
 
 from __future__ import annotations
