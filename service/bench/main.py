@@ -44,12 +44,19 @@ def _host(args: argparse.Namespace) -> str:
     return bench_host.run(n_frames=args.frames, seed=args.seed)
 
 
+def _real(args: argparse.Namespace) -> str:
+    from service.bench import real as bench_real
+
+    return bench_real.run(data=args.data, camera=args.camera)
+
+
 SECTIONS: dict[str, Callable[[argparse.Namespace], str]] = {
     "accuracy": _accuracy,
     "speed": _speed,
     "faults": _faults,
     "service": _service,
     "host": _host,
+    "real": _real,
 }
 
 

@@ -4,6 +4,7 @@ tables (the sections are in :mod:`service.bench`)."""
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from service.cli.common import Subparsers
 
@@ -18,7 +19,7 @@ def add_parser(subparsers: Subparsers) -> None:
         "sections",
         nargs="*",
         default=[],
-        help="sections to run (default: all): accuracy, speed, faults, service, host",
+        help="sections to run (default: all): accuracy, speed, faults, service, host, real",
     )
     b.add_argument(
         "--frames",
@@ -42,6 +43,20 @@ def add_parser(subparsers: Subparsers) -> None:
         help="numbers of WebSocket clients for the service section (50p: the others than the probe pose-only)",
     )
     b.add_argument("--seconds", type=float, default=10.0, help="measured seconds per row of the service section")
+    b.add_argument(
+        "--data",
+        type=Path,
+        default=None,
+        help="the real section's data set, MicMac's Circ-Code-Target panel "
+        "(default: ../shared/data/micmac-circ-code-target)",
+    )
+    b.add_argument(
+        "--camera",
+        type=Path,
+        default=None,
+        help="the real section's camera.json of the panel's lens "
+        "(default: posecell calibrates it from the images first)",
+    )
     b.set_defaults(func=run)
 
 
