@@ -178,6 +178,20 @@ def test_glyphs_and_rings_are_not_taken_for_disks():
     assert len(blobs) == 1 and np.allclose(blobs.uv[0], (370, 100), atol=0.1)
 
 
+def test_glyphs_filling_too_little_of_their_ellipse_are_not_measured():
+    # the "1" fills 0.84 of its moments' ellipse, the "2" and the "7" 0.6 (the disks beside them 1.0):
+    # no window is measured for any of them (a "6" or a "9" this bold fills 0.97: the measurement's
+    # shape tests reject those)
+    image = np.full((120, 560), 10, np.uint8)
+    cv2.putText(image, "1 2 7", (10, 80), cv2.FONT_HERSHEY_SIMPLEX, 1.2, 200, 3, cv2.LINE_AA)
+    for u in (440, 480, 520):
+        cv2.circle(image, (u, 60), 8, 200, -1, cv2.LINE_AA)
+    blobs, rejected = detect_blobs(cv2.GaussianBlur(image, (0, 0), 0.7))
+    assert len(blobs) == 3 and np.allclose(np.sort(blobs.uv[:, 0]), (440, 480, 520), atol=0.1)
+    assert rejected.work.n_measured == 3  # the disks' windows only
+    assert (rejected.reason == "merged_or_misshapen").sum() == 3
+
+
 def test_dots_beside_a_bright_sticker_are_not_its_ring():
     # a white sticker (56 px square, as on real panels) passes for a disk; the dots round it, at 2-3
     # of its radii, are not pieces of its ring (they are narrower than any ring could be)
