@@ -81,3 +81,6 @@ def test_the_service_follows_the_pixel_format_its_camera_reports(tmp_path):
             lambda h: h["processing"]["ok"] >= before["ok"] + 10, 60.0, "poses from the Mono12 camera"
         )["processing"]
         assert after["failed"] - before["failed"] <= 2, (before, after)  # a frame or two of the change
+        assert after["measurement"]["cam0"]["bit_depth"] == 12
+        with server.client() as c:
+            assert c.get("/health").json()["cameras"]["cam0"]["pixel_format"] == "Mono12"

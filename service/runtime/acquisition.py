@@ -350,4 +350,5 @@ class CameraChannel:
             "last_frame_age_s": None if age_s is None else round(age_s, 3),
             "trigger": str(self.settings.trigger),
             "exposure_us": self.settings.exposure_us,
+            "pixel_format": self.pixel_format,  # as the driver reports it: the measurement's bit depth
         }

@@ -133,10 +133,13 @@ class CameraProcessor:
             self._process = None
 
     def measurement_report(self) -> dict[str, Any]:
-        """Where this camera's frames are measured: ``process`` (its pid, children replaced) or ``thread``."""
+        """Where this camera's frames are measured: ``process`` (its pid, children replaced) or ``thread``;
+        and the frames' bit depth the measurement was set up for (None: the image dtype's)."""
         if self._process is None:
-            return {"in": "thread" if self._measurer is not None else None, "pid": None, "restarts": 0}
-        return {"in": "process", "pid": self._process.pid, "restarts": self._process.restarts}
+            where = {"in": "thread" if self._measurer is not None else None, "pid": None, "restarts": 0}
+        else:
+            where = {"in": "process", "pid": self._process.pid, "restarts": self._process.restarts}
+        return {**where, "bit_depth": self._bit_depth}
 
     @property
     def depth(self) -> int:
