@@ -17,6 +17,7 @@ drawn targets.
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
 
 import cv2
@@ -534,6 +535,52 @@ def test_bench_real_gives_every_row_beside_the_peer(camera_calibrated_by_posecel
         assert r[1].strip() == "4/4", r  # every image posed, in every row
         assert float(r[5].split("/")[1]) < 0.5, r  # the pose moved by less than half a millimetre
         assert float(r[8]) > 0, r  # the peer's time, measured in the same run
+
+
+def test_the_running_service_measures_the_real_panel_replayed(camera_calibrated_by_posecell, tmp_path):
+    """The 20 images through ``posecell serve``: the replay camera on the images' folder, the camera
+    and the panel uploaded over HTTP, the poses read from the WebSocket. Each result is the pose that
+    the pipeline gives one of the images in-process (the service tries the ROI tracking from the last
+    view first: it must not take a wrong pose for a right one), and every image comes round."""
+    from websockets.sync.client import connect
+
+    from service.settings import load_settings
+    from tests.api.conftest import free_port, run_server
+
+    camera_json, _ = camera_calibrated_by_posecell
+    data = shared_data(DATA)
+    field = formats.read_field(data / POSITIONS)
+    camera = formats.read_camera(camera_json)
+    settings = MeasureSettings.from_options(code_family="aicon14", roi_tracking=False)
+    poses = {}
+    for path in sorted((data / "images").glob("*_Scaled.tif")):
+        r = FrameMeasurer(camera, field, settings).measure(formats.read_image(path)).result
+        if isinstance(r, PoseResult):
+            poses[path.name] = r.T_field_camera
+    config = load_settings(
+        None,
+        state_dir=str(tmp_path),
+        server__port=free_port(),
+        server__token="test-token",
+        cameras=[{"driver": "replay", "frame_rate_hz": 8.0, "options": {"source": str(data / "images")}}],
+        processing={"code_family": "aicon14"},
+    )
+    for server in run_server(config):
+        with server.client() as c:
+            assert c.put("/calibration/camera", json=json.loads(camera_json.read_text())).status_code == 200
+            assert c.put("/calibration/field", json=formats.field_to_json(field)).status_code == 200
+        seen: dict[str, int] = {}
+        with connect(f"{server.ws_url}/ws/poses?targets=false", open_timeout=10) as ws:
+            deadline = time.monotonic() + 60.0
+            while len(seen) < len(poses) and time.monotonic() < deadline:
+                msg = json.loads(ws.recv(timeout=10))
+                if not msg.get("ok") or msg.get("camera") != "cam0":
+                    continue  # the frames before the upload, and 043_0031 if it fails
+                T = np.array(msg["T_field_camera"])
+                name, d = min(((n, pose_difference(T, P)[0]) for n, P in poses.items()), key=lambda x: x[1])
+                assert d < 0.01, (name, d, msg.get("mode"))  # the image's own pose, to a hundredth of a mm
+                seen[name] = seen.get(name, 0) + 1
+        assert set(seen) == set(poses), sorted(set(poses) - set(seen))
 
 
 def test_an_uncalibrated_camera_fails_saying_so_and_naming_the_verb(tmp_path, capsys):
