@@ -281,6 +281,14 @@ def _nominal(camera: BrownFraser) -> bool:
     return camera.sigma is None and not np.any(camera.params()[1:])
 
 
+def _size_mismatch(shape: tuple[int, ...], camera: BrownFraser) -> str:
+    return (
+        f"the frame is {shape[1]} x {shape[0]} px but the camera model is for {camera.width} x {camera.height} px: "
+        "a camera's ROI needs the camera of that window (BrownFraser.cropped; the service makes it from the "
+        "camera's configured roi), another image size a calibration of its own"
+    )
+
+
 def _with_calibration_hint(e: SolveError, camera: BrownFraser) -> SolveError:
     """``e`` with a sentence saying the camera is not calibrated, when that is the likely cause: the
     targets disagree with every pose (sigma0, gross errors), as an uncorrected lens's distortion makes
@@ -348,6 +356,10 @@ class FrameMeasurer:
     def measure(self, image: NDArray[np.generic], t_s: float | None = None) -> Outcome:
         """Measure one frame taken at ``t_s`` (s; None: no tracking across frames)."""
         s = self.settings
+        shape = np.shape(image)
+        if len(shape) == 2 and shape != (self.camera.height, self.camera.width):
+            self._history.clear()  # pixels of another geometry: no pose of it is right, nor one to track
+            return Outcome(Failure(Reason.bad_image, _size_mismatch(shape, self.camera)), "full", {})
         if s.roi and t_s is not None:
             T_pred = predict_pose(list(self._history), t_s)
             if T_pred is not None:

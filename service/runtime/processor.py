@@ -84,10 +84,13 @@ class CameraProcessor:
         settings: Settings,
         calibration: CalibrationState,
         pixel_format: Callable[[], str | None] = lambda: None,
+        roi: Callable[[], tuple[int, int, int, int] | None] = lambda: None,
     ) -> None:
         self.name = name
         self.pixel_format = pixel_format  # what the camera delivers, as its driver says (None: not known)
+        self.roi = roi  # the window of the sensor the camera delivers (x, y, width, height px), None: all
         self._bit_depth: int | None = None  # the frames' significant bits the measurer was built for
+        self._roi: tuple[int, int, int, int] | None = None  # the window the measurer was built for
         # the worker's current settings (frozen): the worker puts the new object here on a change, and
         # the measurer is rebuilt before the next frame when its processing options are another object
         self.settings = settings
@@ -166,15 +169,27 @@ class CameraProcessor:
             and cal.generation == self._generation
             and processing is self._processing
             and BIT_DEPTH.get(self.pixel_format() or "") == self._bit_depth
+            and self.roi() == self._roi
             and self._process.can_submit()
         )
 
     def _current_measurer(self) -> Measurer | None:
         cal, processing = self.calibration, self.settings.processing
-        bits = BIT_DEPTH.get(self.pixel_format() or "")
-        if cal.generation != self._generation or processing is not self._processing or bits != self._bit_depth:
-            self._generation, self._processing, self._bit_depth = cal.generation, processing, bits
-            if cal.camera is None or cal.field is None:
+        bits, roi = BIT_DEPTH.get(self.pixel_format() or ""), self.roi()
+        if (
+            cal.generation != self._generation
+            or processing is not self._processing
+            or bits != self._bit_depth
+            or roi != self._roi
+        ):
+            self._generation, self._processing, self._bit_depth, self._roi = cal.generation, processing, bits, roi
+            camera = cal.camera
+            if camera is not None and roi is not None:
+                try:  # the calibration is the whole sensor's; the frames are the window's pixels
+                    camera = camera.cropped(*roi)
+                except ValueError:  # a window the calibrated sensor does not hold: each frame says so
+                    pass
+            if camera is None or cal.field is None:
                 self._measurer = None
             elif processing.measure_in == "process":
                 if self._process is None:
@@ -182,13 +197,13 @@ class CameraProcessor:
                     self._process.keep_to(self._cpus)
                 self._measurer = self._process
                 try:
-                    self._process.configure(cal.camera, cal.field, measure_settings(processing, bits))
+                    self._process.configure(camera, cal.field, measure_settings(processing, bits))
                 except Exception:
                     self._generation = -1  # set up again with the next frame
                     raise
             else:
                 self.close()
-                self._measurer = FrameMeasurer(cal.camera, cal.field, measure_settings(processing, bits))
+                self._measurer = FrameMeasurer(camera, cal.field, measure_settings(processing, bits))
         return self._measurer
 
     def process(self, frame: Frame, robot: RobotDriver | None, robot_state: DeviceState) -> Measurement:

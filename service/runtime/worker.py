@@ -242,7 +242,7 @@ class Worker:
         self.cameras[cfg.name] = ch
         self._set_exposure_control(cfg)
         self.processors[cfg.name] = CameraProcessor(
-            cfg.name, self.settings, self.calibration, pixel_format=lambda: ch.pixel_format
+            cfg.name, self.settings, self.calibration, pixel_format=lambda: ch.pixel_format, roi=lambda: ch.settings.roi
         )
         ch.start()
 

@@ -89,3 +89,24 @@ def test_brown_from_opencv_round_trip(reference_camera):
     uv = reference_camera.pixel_grid(21, 17)
     diff = (back.camera.ideal_from_pixel(uv) - reference_camera.ideal_from_pixel(uv)) / 0.0067
     assert np.max(np.abs(diff)) < 0.2
+
+
+@pytest.mark.parametrize("window", [(0, 0, 1300, 1030), (200, 100, 1000, 800), (1, 3, 64, 48), (650, 515, 650, 515)])
+def test_a_window_of_the_sensor_maps_its_pixels_as_the_whole_sensor_does(reference_camera, rng, window):
+    x, y, w, h = window
+    crop = reference_camera.cropped(x, y, w, h)
+    assert (crop.width, crop.height) == (w, h) and crop.K1 == reference_camera.K1
+    p_camera = np.column_stack([rng.uniform(-300, 300, 50), rng.uniform(-250, 250, 50), rng.uniform(800, 1200, 50)])
+    np.testing.assert_allclose(
+        crop.pixel_from_camera(p_camera), reference_camera.pixel_from_camera(p_camera) - (x, y), atol=1e-9
+    )
+    uv = rng.uniform(0, (w - 1, h - 1), (50, 2))
+    np.testing.assert_allclose(crop.ideal_from_pixel(uv), reference_camera.ideal_from_pixel(uv + (x, y)), atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "window", [(-1, 0, 10, 10), (0, 0, 1301, 10), (1200, 0, 101, 10), (0, 1000, 10, 31), (0, 0, 0, 5)]
+)
+def test_a_window_beyond_the_sensor_is_refused(reference_camera, window):
+    with pytest.raises(ValueError, match="not inside the 1300 x 1030 px sensor"):
+        reference_camera.cropped(*window)

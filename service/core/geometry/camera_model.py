@@ -79,6 +79,26 @@ class BrownFraser:
         values_by_name: dict[str, Any] = {n: float(x) for n, x in zip(PARAMETER_NAMES, v, strict=True)}
         return replace(self, **values_by_name)
 
+    def cropped(self, x_px: int, y_px: int, width: int, height: int) -> BrownFraser:
+        """The same camera for a window of its sensor (a camera's ROI): ``width`` x ``height`` px whose
+        pixel (0, 0) is the sensor's (``x_px``, ``y_px``). The principal point, given from the image's
+        centre, moves by the window's centre; the correction, relative to it, is the same."""
+        if not (0 <= x_px and 0 <= y_px and width > 0 and height > 0) or (
+            x_px + width > self.width or y_px + height > self.height
+        ):
+            raise ValueError(
+                f"the window {width} x {height} px at ({x_px}, {y_px}) is not inside the {self.width} x "
+                f"{self.height} px sensor"
+            )
+        px, py = self.pixel_size_mm
+        return replace(
+            self,
+            width=int(width),
+            height=int(height),
+            x0_mm=self.x0_mm - (x_px + (width - 1) / 2.0 - (self.width - 1) / 2.0) * px,
+            y0_mm=self.y0_mm - (y_px + (height - 1) / 2.0 - (self.height - 1) / 2.0) * py,
+        )
+
     @property
     def mean_pixel_size_mm(self) -> float:
         return 0.5 * (self.pixel_size_mm[0] + self.pixel_size_mm[1])
