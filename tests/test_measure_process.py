@@ -6,11 +6,13 @@ from __future__ import annotations
 import os
 import signal
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from service.bench.speed import frames_along_path
+from service.core.geometry.camera_model import BrownFraser
 from service.core.results import PoseResult
 from service.pipeline.measure import FrameMeasurer, MeasureSettings
 from service.runtime.measure_process import MeasureProcess, MeasureProcessError
@@ -50,11 +52,28 @@ def test_the_child_gives_the_outcomes_measured_here_frame_by_frame_with_tracking
     assert child.pid is not None and child.pid != os.getpid()
 
 
+def _larger(camera: BrownFraser, scale: int = 2) -> BrownFraser:
+    """A sensor ``scale`` times as wide and high whose top-left window is ``camera`` (a camera whose
+    ROI grew: its frames outgrow the shared buffer)."""
+    w, h = camera.width * scale, camera.height * scale
+    px, py = camera.pixel_size_mm
+    return replace(
+        camera,
+        width=w,
+        height=h,
+        x0_mm=camera.x0_mm - ((w - 1) / 2 - (camera.width - 1) / 2) * px,
+        y0_mm=camera.y0_mm - ((h - 1) / 2 - (camera.height - 1) / 2) * py,
+    )
+
+
 def test_a_larger_frame_than_the_buffer_gets_a_larger_buffer(frames, child):
     small = frames[0].image
     big = np.zeros((small.shape[0] * 2, small.shape[1] * 2), small.dtype)
     big[: small.shape[0], : small.shape[1]] = small
+    window = _larger(reference_camera()).cropped(0, 0, 1300, 1030)
+    assert (window.x0_mm, window.y0_mm) == pytest.approx((reference_camera().x0_mm, reference_camera().y0_mm))
     assert child.measure(small).mode == "full"
+    child.configure(_larger(reference_camera()), reference_field(), MeasureSettings())
     out = child.measure(big)  # the same targets at the top left of a four times larger frame
     assert isinstance(out.result, PoseResult) and len(out.result.targets) > 100
     assert child.restarts == 0
@@ -128,11 +147,13 @@ def test_a_larger_frame_while_another_is_in_flight_gets_a_new_buffer_and_both_ar
     big[: small.shape[0], : small.shape[1]] = frames[1].image
     child.measure(small)  # the buffer is sized for the small frames
     child.submit(small)
+    child.configure(_larger(reference_camera()), reference_field(), MeasureSettings())  # the ROI grew
     child.submit(big)  # read by the child from the new buffer, after the first from the old one
     first, second = child.collect(), child.collect()
     assert isinstance(first.result, PoseResult) and isinstance(second.result, PoseResult)
     here = FrameMeasurer(reference_camera(), reference_field(), MeasureSettings())
     np.testing.assert_array_equal(first.result.T_field_camera, here.measure(small).result.T_field_camera)
+    here = FrameMeasurer(_larger(reference_camera()), reference_field(), MeasureSettings())
     np.testing.assert_array_equal(second.result.T_field_camera, here.measure(big).result.T_field_camera)
 
 

@@ -63,7 +63,7 @@ class Sample:
     t_wall: str
     camera: str
     ids: list[str] = field(default_factory=list)  # the targets used in the frame's adjustment
-    uv: np.ndarray | None = None  # (N, 2) px, measured
+    uv: np.ndarray | None = None  # (N, 2) px, measured, in the whole sensor's pixels (the calibration's)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -214,6 +214,11 @@ class HandEyeSession:
             raise SessionError(Reason.robot_disconnected, why)
         pose = m.result
         used = [t for t in pose.targets if t.used] if isinstance(pose, PoseResult) else []
+        # a camera's ROI frames are measured in the window's pixels: the sample keeps the sensor's, which
+        # the camera calibration and the image-level refinement project into
+        channel = worker.cameras.get(m.camera or "")
+        roi = channel.settings.roi if channel is not None else None
+        offset = np.array(roi[:2], dtype=np.float64) if roi is not None else np.zeros(2)
         sample = Sample(
             T_base_flange=m.flange.T_base_flange,
             T_field_camera=pose.T_field_camera,
@@ -224,7 +229,7 @@ class HandEyeSession:
             t_wall=iso_wall(m.t_unix_ns),
             camera=self.camera,
             ids=[t.id for t in used],
-            uv=np.array([t.uv for t in used]).reshape(-1, 2),
+            uv=np.array([t.uv for t in used]).reshape(-1, 2) + offset,
         )
         with self.lock:
             before = (list(self.samples), self.result)
