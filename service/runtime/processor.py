@@ -16,6 +16,7 @@ says why the flange part is missing (``flange_reason``).
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections import deque
@@ -185,10 +186,10 @@ class CameraProcessor:
             self._generation, self._processing, self._bit_depth, self._roi = cal.generation, processing, bits, roi
             camera = cal.camera
             if camera is not None and roi is not None:
-                try:  # the calibration is the whole sensor's; the frames are the window's pixels
+                # the calibration is the whole sensor's, the frames the window's pixels; a window the
+                # calibrated sensor does not hold keeps the whole camera, and each frame says so
+                with contextlib.suppress(ValueError):
                     camera = camera.cropped(*roi)
-                except ValueError:  # a window the calibrated sensor does not hold: each frame says so
-                    pass
             if camera is None or cal.field is None:
                 self._measurer = None
             elif processing.measure_in == "process":
