@@ -22,7 +22,7 @@ from service.pipeline.measure import FrameMeasurer, MeasureSettings
 from service.sim.render import RenderSettings, render_frame
 from service.sim.scene import reference_camera, reference_field, reference_pose
 from service.store import formats
-from tests.api.conftest import free_port, run_server
+from tests.api.conftest import live_settings, run_server
 
 
 def _frame(bits: int) -> np.ndarray:
@@ -63,15 +63,7 @@ def test_measure_verb_reads_12_bit_images_with_their_bit_depth(tmp_path, capsys)
 
 
 def test_the_service_follows_the_pixel_format_its_camera_reports(tmp_path):
-    from service.settings import load_settings
-
-    settings = load_settings(
-        None,
-        state_dir=str(tmp_path),
-        server__port=free_port(),
-        server__token="test-token",
-        cameras=[{"frame_rate_hz": 15.0, "pixel_format": "Mono16"}],
-    )
+    settings = live_settings(tmp_path, cameras=[{"frame_rate_hz": 15.0, "pixel_format": "Mono16"}])
     for server in run_server(settings):
         server.wait_for(lambda h: h["processing"]["ok"] >= 5, 120.0, "poses from the Mono16 camera")
         with server.client() as c:  # at run time: the measurement is set up again for 12 bits

@@ -18,10 +18,9 @@ from websockets.sync.client import connect
 from service.core.geometry.frames import pose_difference
 from service.core.results import Failure, PoseResult, Reason
 from service.pipeline.measure import FrameMeasurer, MeasureSettings
-from service.settings import load_settings
 from service.sim.render import RenderSettings, render_frame
 from service.sim.scene import reference_camera, reference_field, reference_pose
-from tests.api.conftest import free_port, run_server
+from tests.api.conftest import live_settings, run_server
 
 WINDOW = (200, 100, 1000, 800)  # x, y, width, height px
 
@@ -49,13 +48,7 @@ def test_a_window_of_the_frame_is_measured_with_the_camera_of_that_window():
 
 
 def test_the_service_measures_a_camera_roi_with_the_camera_of_its_window(tmp_path):
-    settings = load_settings(
-        None,
-        state_dir=str(tmp_path),
-        server__port=free_port(),
-        server__token="test-token",
-        cameras=[{"frame_rate_hz": 15.0, "roi": list(WINDOW)}],
-    )
+    settings = live_settings(tmp_path, cameras=[{"frame_rate_hz": 15.0, "roi": list(WINDOW)}])
     for server in run_server(settings):
         server.wait_for(lambda h: h["processing"]["ok"] >= 5, 120.0, "poses from the camera's window")
         with connect(f"{server.ws_url}/ws/poses?targets=false", open_timeout=10) as ws:

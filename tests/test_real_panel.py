@@ -544,8 +544,7 @@ def test_the_running_service_measures_the_real_panel_replayed(camera_calibrated_
     view first: it must not take a wrong pose for a right one), and every image comes round."""
     from websockets.sync.client import connect
 
-    from service.settings import load_settings
-    from tests.api.conftest import free_port, run_server
+    from tests.api.conftest import live_settings, run_server
 
     camera_json, _ = camera_calibrated_by_posecell
     data = shared_data(DATA)
@@ -557,11 +556,8 @@ def test_the_running_service_measures_the_real_panel_replayed(camera_calibrated_
         r = FrameMeasurer(camera, field, settings).measure(formats.read_image(path)).result
         if isinstance(r, PoseResult):
             poses[path.name] = r.T_field_camera
-    config = load_settings(
-        None,
-        state_dir=str(tmp_path),
-        server__port=free_port(),
-        server__token="test-token",
+    config = live_settings(
+        tmp_path,
         cameras=[{"driver": "replay", "frame_rate_hz": 8.0, "options": {"source": str(data / "images")}}],
         processing={"code_family": "aicon14"},
     )

@@ -73,6 +73,14 @@ class LiveServer:
         raise AssertionError(f"timed out waiting for {what}; last health: {h}")
 
 
+def live_settings(state_dir: Path, **overrides: Any) -> Settings:
+    """The simulated cell's settings for a test server: state in ``state_dir``, a free loopback port, a
+    token; ``overrides`` as ``load_settings`` takes them (``cameras=[...]``, ``sim__program=...``)."""
+    return load_settings(
+        None, state_dir=str(state_dir), server__port=free_port(), server__token="test-token", **overrides
+    )
+
+
 def run_server(settings: Settings) -> Iterator[LiveServer]:
     kernels_compiled()
     app = create_app(settings)

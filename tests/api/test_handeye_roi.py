@@ -10,22 +10,15 @@ from __future__ import annotations
 import numpy as np
 
 from service.core.geometry.frames import apply_T, inv_T
-from service.settings import load_settings
-from tests.api.conftest import free_port, run_server
+from tests.api.conftest import live_settings, run_server
 from tests.api.test_handeye_workflow import _capture
 
 WINDOW = [200, 100, 1000, 800]  # x, y, width, height px
 
 
 def test_a_sample_taken_through_a_camera_roi_keeps_the_sensors_pixels(tmp_path):
-    settings = load_settings(
-        None,
-        state_dir=str(tmp_path),
-        server__port=free_port(),
-        server__token="t",
-        sim__program="hold",
-        sim__preload_handeye=False,
-        cameras=[{"frame_rate_hz": 15.0, "roi": WINDOW}],
+    settings = live_settings(
+        tmp_path, sim__program="hold", sim__preload_handeye=False, cameras=[{"frame_rate_hz": 15.0, "roi": WINDOW}]
     )
     for server in run_server(settings):
         server.wait_for(lambda h: h["processing"]["ok"] >= 2, 180.0, "the cell running")
