@@ -305,6 +305,30 @@ def test_control_points_stay_fixed_and_unknown_targets_are_intersected(rng):
     assert all(abs(v) < 3.0 for v in z_scores(result).values())
 
 
+def test_a_new_target_seen_in_one_image_is_left_out_of_the_field_with_a_warning(rng):
+    """A target of no known position seen in a single image has no coordinates: the calibration
+    goes on, says so, and the refined field (and its per-target arrays) leave it out (a NaN row
+    made the field refuse itself: 'field coordinates must be finite')."""
+    truth = field_3d(rng)
+    control = [
+        int(np.argmin(np.linalg.norm(truth.xyz[:, :2] - c, axis=1)))
+        for c in ((-300, -230), (300, -230), (300, 230), (-300, 230))
+    ]
+    known = Field("control", tuple(truth.ids[i] for i in control), truth.xyz[control], np.full(4, -1), np.full(4, 6.0))
+    images = observe(rng, truth, convergent_poses(rng, 12))
+    lonely = next(t for t in images[0].ids if t not in known.index)
+    images = [images[0]] + [
+        ImagePoints(im.name, tuple(t for t in im.ids if t != lonely), im.uv[[t != lonely for t in im.ids]])
+        for im in images[1:]
+    ]
+    result = calibrate_camera(NOMINAL_CAMERA, known, images, datum=Datum(control=known.ids), sigma_px=NOISE_PX)
+    assert lonely not in result.field.index and len(result.field) == len(truth) - 1
+    assert len(result.sigma_xyz_mm) == len(result.n_rays) == len(result.target_rms_px) == len(result.field)
+    assert np.all(np.isfinite(result.field.xyz))
+    assert any(repr(lonely) in w and "left out of the field" in w for w in result.warnings)
+    assert [t["id"] for t in result.report()["targets"]] == list(result.field.ids)
+
+
 def test_datum_with_too_few_control_points_is_refused(rng):
     truth = field_3d(rng)
     images = observe(rng, truth, convergent_poses(rng, 8))

@@ -48,6 +48,7 @@ from service.core.calib.bundle_network import (
     ImagePoints,
     Network,
     ScaleBar,
+    adjusted_points,
     check_free,
     collect,
     datum_rows,
@@ -484,8 +485,11 @@ def _result(
     target_rms = np.sqrt(ss / np.maximum(2 * n_rays, 1))
     target_rms[n_rays == 0] = np.nan
     for i in np.flatnonzero(network.point_free & ~sol.point_used).tolist():
-        warnings.append(f"target {net.ids[i]!r} kept fewer than two rays after rejections and is not adjusted")
+        warnings.append(
+            f"target {net.ids[i]!r} has fewer than two rays (after rejections): not adjusted, left out of the field"
+        )
     refined = network_field(name, net, sol.points)
+    has_xyz = adjusted_points(sol.points)  # the rows of refined
     geometry = network_geometry(sol.points[sol.point_used], [im.T_field_camera for im in images])
     if geometry["roll_spread_deg"] < MIN_ROLL_SPREAD_DEG and {"x0_mm", "y0_mm", "B1", "B2"} & set(free_t):
         warnings.append(
@@ -505,9 +509,9 @@ def _result(
         redundancy=sol.redundancy,
         images=tuple(images),
         field=refined,
-        sigma_xyz_mm=sig_xyz,
-        n_rays=n_rays,
-        target_rms_px=target_rms,
+        sigma_xyz_mm=sig_xyz[has_xyz],
+        n_rays=n_rays[has_xyz],
+        target_rms_px=target_rms[has_xyz],
         image_index=network.station.copy(),
         ids=ids_obs,
         uv=network.uv.copy(),

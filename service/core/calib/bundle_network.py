@@ -279,12 +279,20 @@ def point_sigmas(sol: NetworkSolution, point_free: NDArray[np.bool_]) -> Array:
     return sig
 
 
+def adjusted_points(points: Array) -> NDArray[np.bool_]:
+    """Which of the network's points (N, 3) mm have coordinates: a new point seen in fewer than two
+    images, or left with fewer than two rays by the rejections, has none (NaN)."""
+    return np.asarray(np.all(np.isfinite(points), axis=1))
+
+
 def network_field(name: str, net: Network, points: Array) -> Field:
-    """The network's points ``points`` (N, 3) mm as a field (new points with code -1)."""
+    """The network's points ``points`` (N, 3) mm that have coordinates (:func:`adjusted_points`) as a
+    field (new points with code -1)."""
+    keep = adjusted_points(points)
     return Field(
         name=name,
-        ids=tuple(net.ids),
-        xyz=points,
-        codes=np.array(net.codes, dtype=np.int64),
-        diameters_mm=np.array(net.diameters),
+        ids=tuple(i for i, k in zip(net.ids, keep, strict=True) if k),
+        xyz=points[keep],
+        codes=np.array(net.codes, dtype=np.int64)[keep],
+        diameters_mm=np.array(net.diameters)[keep],
     )

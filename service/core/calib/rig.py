@@ -59,6 +59,7 @@ from numpy.typing import NDArray
 from service.core.calib.bundle_network import (
     Datum,
     ImagePoints,
+    adjusted_points,
     check_free,
     collect,
     datum_rows,
@@ -435,7 +436,7 @@ def calibrate_rig(
         epochs=tuple(epochs[e] for e in keep_epoch),
         T_field_rig=np.array([inv_T(T_from_params(v)) for v in sol.stations]),
         field=network_field(field.name, net, sol.points),
-        sigma_xyz_mm=point_sigmas(sol, net_in.point_free),
+        sigma_xyz_mm=point_sigmas(sol, net_in.point_free)[adjusted_points(sol.points)],
         warnings=tuple(warnings),
         extra={"free_interior": list(free_t), "field_fixed": field_fixed},
     )
