@@ -35,7 +35,9 @@ start)``: the same image whichever process renders it. ``open()`` returns once t
 rendered more slowly than the rate and skipped; if the child is not ready within ``OPEN_WAIT_S``,
 if it cannot start, or with ``render="inline"``, frames render in this process.
 
-What it does not model: motion blur within the exposure, rolling shutter, packet loss, buffer
+The arm's motion during the exposure smears the frame (one uniform smear, the median image motion
+of the targets from the exposure's start to its end: :func:`service.sim.render.image_motion_px`).
+What it does not model: a smear that differs across the image (a rotation), rolling shutter, packet loss, buffer
 underruns, and how long rendering takes (a frame is handed over no earlier than its scheduled
 arrival and stamped with it, even when rendering made it later). The ground truth of a frame
 is in ``Frame.meta``: ``T_field_camera`` (mm), ``t_exposure_true_host_ns``, and ``render``
@@ -65,11 +67,12 @@ from drivers.base import (
 )
 from drivers.camera.sim_render import FrameRenderer, RenderJob
 from service.sim.cell import CellConfig, SimCell
-from service.sim.render import RenderSettings
+from service.sim.render import RenderSettings, image_motion_px
 
 _LIT_SOURCES = ("ExposureActive", "Timer0Active", "Timer1Active")
 _BIT_DEPTH = {"Mono8": 8, "Mono12": 12, "Mono16": 16}
 REFERENCE_EXPOSURE_US = 2000.0  # the exposure at which RenderSettings.target_dn is reached
+MIN_SMEAR_PX = 0.05  # a slower image motion during the exposure is not rendered (the blur hides it)
 AHEAD_FRAMES = 3  # free run: frames asked of the render process at once (the next one and two more)
 STALE_NS = 500_000_000  # a frame due longer ago than this is dropped (the driver's buffers, ~10 frames at 20 Hz)
 OPEN_WAIT_S = 15.0  # open() waits this long at most for the render child (a fresh install compiles it)
@@ -408,6 +411,13 @@ class SimCamera:
         t_cell_s = (t_start_ns + exposure_ns // 2 - self.epoch_ns) * 1e-9
         T = self._T_field_camera(t_cell_s)
         settings = replace(self._render_settings(exposure_us, gain_db), lit=self._lit())
+        # the arm's motion during the exposure smears the frame about its mid-exposure pose
+        half_s = exposure_ns * 0.5e-9
+        T0, T1 = self._T_field_camera(t_cell_s - half_s), self._T_field_camera(t_cell_s + half_s)
+        if not np.array_equal(T0, T1):
+            length_px, angle_deg = image_motion_px(self._cell.camera, self._cell.field, T0, T1)
+            if length_px >= MIN_SMEAR_PX:
+                settings = replace(settings, motion_blur_px=length_px, motion_angle_deg=angle_deg)
         job = RenderJob(T, settings, (self._seed, (t_start_ns - self.epoch_ns) % 2**63))
         ticket = self._renderer.submit(job)
         return _Planned(t_start_ns, t_arrival_ns, t_cell_s, T, self._version, ticket, exposure_us, gain_db)

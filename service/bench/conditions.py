@@ -2,7 +2,8 @@
 
 Each row renders the same kind of path (see :func:`service.bench.speed.frames_along_path`) under
 one condition — read noise of 1, 2, 4 and 6 DN over a 12 DN background, the ring light's hot
-spot, a gradient, oblique views, blur, printed labels (text that is bright but no target) — and
+spot, a gradient, oblique views, blur, the smear of the arm's motion during the exposure, printed
+labels (text that is bright but no target) — and
 measures it three ways in the same run: posecell on the full frame, posecell with ROI tracking
 along the path, and the OpenCV peer (threshold + components + ``solvePnP``, given the identities).
 Per row: median and p99 ms per frame, the median pose error against the rendering's truth, and
@@ -50,6 +51,8 @@ CONDITIONS = (
     Condition("view 60 deg", view_deg=60.0),
     Condition("view 45 deg", view_deg=45.0 + 10.0),  # the path's views span 45-65 deg
     Condition("blur 1.5 px", RenderSettings(exposure_scale=0.8, blur_sigma_px=1.5)),
+    # the arm moving during the exposure: at 1 m 6 px is 3.4 mm, e.g. 0.34 m/s for 10 ms
+    Condition("motion blur 6 px", RenderSettings(exposure_scale=0.8, motion_blur_px=6.0, motion_angle_deg=30.0)),
     Condition("printed labels", labels=True),
 )
 

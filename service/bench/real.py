@@ -9,7 +9,8 @@ posecell calibrates it from the 20 images first (``posecell calibrate camera`` w
 family and the lens's nominal c and pixel size only, ~1-3 min), as a user would.
 
 Rows: the images as they are, then :data:`DEGRADATIONS` (read noise, defocus, half the light, a
-gradient, a hot spot, and the 12-bit frame a Mono12 camera would deliver). Per row: the images
+gradient, a hot spot, the smear of a camera moving during the exposure, and the 12-bit frame a
+Mono12 camera would deliver). Per row: the images
 that gave a pose; posecell's full-frame time (median, p99) with the default settings (the code
 family given; ``bit_depth`` 12 for the 12-bit row); the targets named; the pose's difference from
 the image's own (median and largest); and the same for the peer of ``posecell bench speed``
@@ -36,6 +37,7 @@ from service.core.geometry.frames import inv_T, pose_difference
 from service.core.geometry.opencv_compat import opencv_from_brown
 from service.core.results import PoseResult
 from service.pipeline.measure import FrameMeasurer, MeasureSettings
+from service.sim.render import smear
 from service.store import formats
 
 DEFAULT_DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "micmac-circ-code-target"
@@ -75,6 +77,7 @@ DEGRADATIONS: tuple[tuple[str, Degrade], ...] = (
     ("half the light", lambda img, rng: (img * 0.5 + 0.5).astype(np.uint8)),
     ("gradient 0-60 DN", _gradient),
     ("hot spot 60 DN", _hot_spot),
+    ("motion blur 6 px", lambda img, rng: smear(img, 6.0, 30.0)),
     ("12 bit (Mono12)", _twelve_bit),
 )
 

@@ -17,7 +17,9 @@ Image formation, in this order (levels in 8-bit DN, scaled to the bit depth last
    (``target_dn`` at :data:`REFERENCE_DISTANCE_MM`), with ``cos(incidence) **
    INCIDENCE_POWER`` (retro-reflective sheeting is wide-angle) and with the
    natural vignetting ``cos(field angle) ** VIGNETTING_POWER``.
-4. Optics: Gaussian blur ``blur_sigma_px`` (cv2) of the target light; then the
+4. Optics: Gaussian blur ``blur_sigma_px`` (cv2) of the target light, and the smear of the
+   camera's motion during the exposure (``motion_blur_px`` along ``motion_angle_deg``:
+   :func:`smear`, centred, so ``uv_true`` is the mid-exposure position); then the
    ring light's hot spot (only when lit) and the linear gradient are added,
    occluders darken all of that down to the dark level, and ``background_dn``
    is added.
@@ -80,6 +82,10 @@ class RenderSettings:
     hot_spot_sigma_px: float = 250.0
     hot_spot_uv: tuple[float, float] | None = None  # default: image centre
     gradient_dn: float = 0.0  # linear ramp: 0 at the left image edge, gradient_dn at the right
+    # the image's motion during the exposure: a uniform smear this long (px, centred on the
+    # mid-exposure position) in this direction (deg from +u towards +v); a camera on a moving arm
+    motion_blur_px: float = 0.0
+    motion_angle_deg: float = 0.0
     occluders: tuple[tuple[float, float, float], ...] = ()  # dark discs (u, v, radius_px)
     lit: bool = True  # ring light on? if False, targets are not bright (only background)
 
@@ -88,7 +94,15 @@ class RenderSettings:
             raise ValueError(f"supersample must be a positive integer, got {self.supersample}")
         if not 8 <= int(self.bit_depth) <= 16 or int(self.bit_depth) != self.bit_depth:
             raise ValueError(f"bit_depth must be an integer from 8 to 16, got {self.bit_depth}")
-        for name in ("blur_sigma_px", "background_dn", "target_dn", "exposure_scale", "read_noise_dn", "hot_spot_dn"):
+        for name in (
+            "blur_sigma_px",
+            "background_dn",
+            "target_dn",
+            "exposure_scale",
+            "read_noise_dn",
+            "hot_spot_dn",
+            "motion_blur_px",
+        ):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and non-negative, got {v}")
@@ -96,6 +110,8 @@ class RenderSettings:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be finite and positive, got {v}")
+        if not np.isfinite(self.motion_angle_deg):
+            raise ValueError(f"motion_angle_deg must be finite, got {self.motion_angle_deg}")
         if not np.isfinite(self.gradient_dn):
             raise ValueError(f"gradient_dn must be finite, got {self.gradient_dn}")
         for occ in self.occluders:
@@ -208,6 +224,58 @@ def _boxes_overlap(u0: NDArray[np.intp], v0: NDArray[np.intp], u1: NDArray[np.in
     return bool(np.any((u0[j] <= u1[i]) & (u0[i] <= u1[j]) & (v0[j] <= v1[i]) & (v0[i] <= v1[j])))
 
 
+SMEAR_SAMPLES_PER_PX = 16  # points of the smear's segment per px, each spread bilinearly
+
+
+def smear_kernel(length_px: float, angle_deg: float) -> NDArray[np.float32]:
+    """The normalised kernel of a uniform smear ``length_px`` long at ``angle_deg`` (from +u towards
+    +v), centred on the kernel's middle pixel: the segment's points, each shared bilinearly between
+    its four pixels. Point-symmetric, so correlation (``cv2.filter2D``) is the convolution."""
+    if not (np.isfinite(length_px) and length_px >= 0 and np.isfinite(angle_deg)):
+        raise ValueError(f"a smear needs a finite length >= 0 and angle, got {length_px} px at {angle_deg} deg")
+    half = int(np.ceil(length_px / 2)) + 1
+    n = max(2, int(np.ceil(length_px * SMEAR_SAMPLES_PER_PX)))
+    t = (np.arange(n) + 0.5) / n - 0.5  # symmetric about 0
+    a = np.radians(angle_deg)
+    x, y = half + t * length_px * np.cos(a), half + t * length_px * np.sin(a)
+    x0, y0 = np.floor(x).astype(np.intp), np.floor(y).astype(np.intp)
+    fx, fy = x - x0, y - y0
+    k = np.zeros((2 * half + 1, 2 * half + 1))
+    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        np.add.at(k, (y0 + dy, x0 + dx), w)
+    return (k / k.sum()).astype(np.float32)
+
+
+def image_motion_px(
+    camera: BrownFraser, field: Field, T_field_camera_start: Array, T_field_camera_end: Array
+) -> tuple[float, float]:
+    """The smear (length px, angle deg from +u towards +v) of a camera moving from one pose to the
+    other during an exposure: the median image motion of the field's targets in view in both.
+
+    One uniform smear stands for the frame: a translation moves every target alike; a rotation
+    about the optical axis or a change of distance moves them apart, which the median averages."""
+    ends = []
+    for T in (T_field_camera_start, T_field_camera_end):
+        p_cam = apply_T(inv_T(np.asarray(T, dtype=np.float64)), field.xyz)
+        ends.append((p_cam[:, 2] > 1.0, camera.pixel_from_camera(p_cam)))
+    (front0, uv0), (front1, uv1) = ends
+    seen = front0 & front1 & camera.in_image(uv0) & camera.in_image(uv1)
+    if not np.any(seen):
+        return 0.0, 0.0
+    du, dv = np.median(uv1[seen] - uv0[seen], axis=0)
+    return float(np.hypot(du, dv)), float(np.degrees(np.arctan2(dv, du)))
+
+
+def smear(image: NDArray[np.generic], length_px: float, angle_deg: float) -> NDArray[np.generic]:
+    """``image`` smeared as by the camera's motion during the exposure (:func:`smear_kernel`), in its
+    own type (rounded): a degradation for real images (``posecell bench real``)."""
+    img = np.asarray(image)
+    out: NDArray[np.generic] = cv2.filter2D(
+        img, -1, smear_kernel(length_px, angle_deg), borderType=cv2.BORDER_REFLECT_101
+    )
+    return out
+
+
 def _compose(
     signal: NDArray[np.float32], settings: RenderSettings, rng: np.random.Generator | None
 ) -> NDArray[np.generic]:
@@ -220,6 +288,10 @@ def _compose(
         k = 2 * int(np.ceil(3.0 * s.blur_sigma_px)) + 1  # +-3 sigma; cv2 normalises the kernel
         # in place: every fresh full-frame buffer costs ~1 ms of page faults
         img = cv2.GaussianBlur(signal, (k, k), s.blur_sigma_px, dst=signal, borderType=cv2.BORDER_REFLECT_101)
+    if s.motion_blur_px > 0:
+        img = cv2.filter2D(
+            img, -1, smear_kernel(s.motion_blur_px, s.motion_angle_deg), borderType=cv2.BORDER_REFLECT_101
+        )
     if s.gradient_dn != 0:
         img += (np.arange(width, dtype=f32) * f32(s.gradient_dn / max(width - 1, 1)))[None, :]
     if s.lit and s.hot_spot_dn > 0:

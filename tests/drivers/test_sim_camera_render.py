@@ -13,11 +13,11 @@ import pytest
 
 from drivers.base import CameraSettings, DriverDisconnected, DriverTimeout, StrobeSettings, TriggerMode
 from drivers.camera import sim_render
-from drivers.camera.sim import REFERENCE_EXPOSURE_US, SimCamera
+from drivers.camera.sim import MIN_SMEAR_PX, REFERENCE_EXPOSURE_US, SimCamera
 from drivers.camera.sim_render import FrameRenderer, RenderJob
 from drivers.camera.sim_render_child import render_job
 from service.sim.cell import CellConfig, SimCell
-from service.sim.render import RenderSettings
+from service.sim.render import RenderSettings, image_motion_px
 from tests.host_speed import allowed_gaps, sim_render_ms
 
 LIT = StrobeSettings(enabled=True, line="Line1", source="ExposureActive")
@@ -29,8 +29,15 @@ def _fetch(cam: SimCamera, n: int, timeout_s: float = 3.0):
 
 
 def _in_process(cell: SimCell, frame, seed: int, period_ns: int, settings: RenderSettings):
-    """The frame rendered here, for the pose the cell has *now* at its exposure (free run: key of its seq)."""
-    T = cell.T_field_camera(frame.meta["t_cell_s"])
+    """The frame rendered here, for the pose the cell has *now* at its exposure (free run: key of its
+    seq), smeared by the camera's motion from the exposure's start to its end."""
+    t_s, half_s = frame.meta["t_cell_s"], frame.exposure_us * 0.5e-6
+    T = cell.T_field_camera(t_s)
+    length_px, angle_deg = image_motion_px(
+        cell.camera, cell.field, cell.T_field_camera(t_s - half_s), cell.T_field_camera(t_s + half_s)
+    )
+    if length_px >= MIN_SMEAR_PX:
+        settings = replace(settings, motion_blur_px=length_px, motion_angle_deg=angle_deg)
     job = RenderJob(T, replace(settings, lit=frame.meta["lit"]), (seed, frame.seq * period_ns))
     return render_job(cell.camera, cell.field, job)
 

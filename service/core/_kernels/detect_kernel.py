@@ -57,6 +57,29 @@ def _maximum(a: float, b: float) -> float:  # np.maximum: NaN-propagating
     return b
 
 
+# A target smeared by the camera's motion during the exposure: its image is the disk's ellipse
+# convolved with a line segment (and the blur), a uniform distribution along the motion, whose
+# excess kurtosis is -1.2 (the ellipse's own along an axis: -1, a semicircle; the blur's: 0)
+SMEAR_EXCESS_KURTOSIS = 1.2
+
+
+@njit(cache=True, nogil=True)
+def _kurtosis_range(qa4, qb4, var_major):
+    """(lowest, highest) kurtosis along the major axis of a disk's ellipse smeared along that axis
+    by any length that keeps its own ellipse no narrower than the blob's minor axis. ``qa4`` and
+    ``qb4``: the blob's semi-axes squared over 4 (blur removed), px^2; ``var_major``: its variance
+    along the major axis, blur included. The ellipse's own major variance ``qa4 - s`` and the
+    smear's ``s`` (0 <= s <= qa4 - qb4) add; so do their fourth cumulants, ``-(qa4 - s)^2 - 1.2
+    s^2``, a convex function of ``s``. Without room for a smear (a round blob) the range is the
+    unsmeared disk's one kurtosis, ``3 - qa4^2 / var_major^2``."""
+    s_max = _fmax(qa4 - qb4, 0.0)
+    s_min_k = min(max(qa4 / (1.0 + SMEAR_EXCESS_KURTOSIS), 0.0), s_max)  # where -kappa4 is least
+    k4_least = (qa4 - s_min_k) ** 2 + SMEAR_EXCESS_KURTOSIS * s_min_k * s_min_k
+    k4_most = max(qa4 * qa4, (qa4 - s_max) ** 2 + SMEAR_EXCESS_KURTOSIS * s_max * s_max)
+    v2 = var_major * var_major
+    return 3.0 - k4_most / v2, 3.0 - k4_least / v2
+
+
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
 def _rows(h, w, wi, sums):
     """Per row dv = a - h of the circle of radius h + 1/2: its half width ``w`` and the half
@@ -449,6 +472,10 @@ def assess_kernel(out, n_sat, edge, usable, contrast, limits, codes):
         q = a * a / 4.0
         shot4 = 14 * q**4 - 2 * al * 5 * q**3 + (al * al + 2 * be) * 2 * q * q - 2 * al * be * q + be * be
         kurt_noise = np.sqrt(sb2 * bg4 + k * S * _maximum(shot4, 0.0)) / (S * m2 * m2)
+        # the kurtosis of the disk (kap), or of the disk smeared by motion along its major axis
+        tol_k = sig1 * kurt_noise + floor1
+        k_lo, k_hi = _kurtosis_range(q, b * b / 4.0, m2)
+        k_lo, k_hi = min(k_lo, kap), max(k_hi, kap)
         # a disk's flux over its plateau is its ellipse's area; a ring, a glyph or a hollow blob has
         # a dim centre, so its "area" is many times the moments' (the blur estimate stops at 0)
         ratio_max = ratio_flat if b >= min_b else ratio_small
@@ -458,7 +485,7 @@ def assess_kernel(out, n_sat, edge, usable, contrast, limits, codes):
             and out[FLAT_TOP, i] >= min_flat
             and area <= ratio_max * np.pi * a * b
             and np.sqrt(out[M3SQ, i]) / (2.0 * tr) <= sig0 * asym_noise + floor0
-            and abs(out[KURT, i] - kap) <= sig1 * kurt_noise + floor1
+            and k_lo - tol_k <= out[KURT, i] <= k_hi + tol_k
             and np.isfinite(out[0, i])
             and np.isfinite(out[1, i])
         )

@@ -229,6 +229,13 @@ def _assess_reference(out, n_sat, edge, usable, contrast, limits, codes, h):
         shot4 = x8 - 2 * al * x6 + (al**2 + 2 * be) * x4 - 2 * al * be * x2 + be**2  # E[(x^4 - al x^2 + be)^2]
         kurt_noise = np.sqrt(sb2[i] * bg4 + k * S[i] * max(shot4, 0)) / (S[i] * m2**2)
         ratio_max = ratio_flat if b[i] >= min_b else ratio_small
+        # the disk, or the disk smeared along its major axis: the ellipse's own variance qa - s and
+        # the smear's s add, their fourth cumulants -(qa - s)^2 and -1.2 s^2 too; searched on a grid
+        qa, qb = a[i] ** 2 / 4, b[i] ** 2 / 4
+        s_grid = np.linspace(0.0, max(qa - qb, 0.0), 4001) if np.isfinite(qa - qb) else np.zeros(1)
+        kurt_smeared = 3 - ((qa - s_grid) ** 2 + 1.2 * s_grid**2) / m2**2
+        k_lo, k_hi = min(kurt_smeared.min(), kap), max(kurt_smeared.max(), kap)
+        tol = sig1 * kurt_noise + floor1
         with np.errstate(invalid="ignore"):
             ok = (
                 b[i] * max_aspect >= a[i]
@@ -236,7 +243,7 @@ def _assess_reference(out, n_sat, edge, usable, contrast, limits, codes, h):
                 and out[K.FLAT_TOP, i] >= min_flat
                 and area[i] <= ratio_max * np.pi * a[i] * b[i]
                 and np.sqrt(out[K.M3SQ, i]) / (2 * tr[i]) <= sig0 * asym_noise + floor0
-                and abs(out[K.KURT, i] - kap) <= sig1 * kurt_noise + floor1
+                and k_lo - tol <= out[K.KURT, i] <= k_hi + tol
                 and np.isfinite(out[0, i])
                 and np.isfinite(out[1, i])
             )
