@@ -161,6 +161,8 @@ def test_bench_speed_reports_every_condition_of_the_matrix_beside_the_peer():
     names = [line.split("|")[1].strip() for line in rows]
     for cond in CONDITIONS:
         assert cond.name in names, (cond.name, r.stdout)
+    edge = [line for line in rows if "edge centres" in line]  # the full frame's and the ROI tracking's
+    assert len(edge) == 2 and all(float(line.split("|")[2]) > 0 for line in edge), edge
     for line in rows:
         if line.split("|")[1].strip() in {c.name for c in CONDITIONS}:
             cells = [c.strip() for c in line.split("|")[2:-1]]
@@ -234,14 +236,18 @@ def test_simulate_then_measure_recovers_the_simulated_poses(tmp_path):
     assert r.returncode == 0, r.stderr
     truth = [json.loads(line) for line in (tmp_path / "truth.jsonl").read_text().splitlines()]
     images = [str(tmp_path / t["image"]) for t in truth]
-    r = run("measure", "--camera", str(tmp_path / "camera.json"), "--field", str(tmp_path / "field.json"), *images)
-    assert r.returncode == 0, r.stderr
-    lines = [json.loads(line) for line in r.stdout.splitlines()]
-    assert len(lines) == 3
-    for out, t in zip(lines, truth, strict=True):
-        assert out["ok"], out
-        assert np.allclose(np.array(out["T_field_camera"])[:3, 3], np.array(t["T_field_camera"])[:3, 3], atol=0.5)
-        assert out["n_coded"] >= 4 and out["n_uncoded"] > 50
+    for centre in ([], ["--centre", "edge"]):  # the intensity centroid (default), the edge fit
+        files = ["--camera", str(tmp_path / "camera.json"), "--field", str(tmp_path / "field.json")]
+        r = run("measure", *files, *centre, *images)
+        assert r.returncode == 0, r.stderr
+        lines = [json.loads(line) for line in r.stdout.splitlines()]
+        assert len(lines) == 3
+        for out, t in zip(lines, truth, strict=True):
+            assert out["ok"], out
+            assert np.allclose(np.array(out["T_field_camera"])[:3, 3], np.array(t["T_field_camera"])[:3, 3], atol=0.5)
+            assert out["n_coded"] >= 4 and out["n_uncoded"] > 50
+    r = run("measure", *files, "--centre", "middle", *images)
+    assert r.returncode == 2 and "invalid choice" in r.stderr
 
 
 def test_measure_goes_on_past_unreadable_black_and_saturated_images(tmp_path):

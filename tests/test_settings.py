@@ -53,6 +53,7 @@ def test_environment_overrides_the_file(tmp_path, monkeypatch):
         ("[[cameras]]\nname='a'\n[[cameras]]\nname='a'\n", "unique"),
         ("[cameras.strobe\n", "not valid TOML"),
         ('[[cameras]]\ndriver = "gige"\n', "cameras.0.driver"),
+        ('[processing]\ncentre = "median"\n', "processing.centre"),
     ],
 )
 def test_bad_configuration_is_refused_with_the_key_named(tmp_path, text, needle):
@@ -235,3 +236,12 @@ def test_auto_exposure_refuses_limits_out_of_order(tmp_path):
     cfg.write_text('[[cameras]]\nname = "cam0"\n[cameras.auto_exposure]\nmin_us = 5000\nmax_us = 100\n')
     with pytest.raises(SettingsError, match=r"auto_exposure.min_us \(5000\) is above max_us \(100\)"):
         load_settings(cfg)
+
+
+def test_the_centre_estimator_reaches_the_measurer(tmp_path):
+    from service.runtime.processor import measure_settings
+
+    cfg = tmp_path / "edge.toml"
+    cfg.write_text('[processing]\ncentre = "edge"\n')
+    assert measure_settings(load_settings(cfg).processing).detect.centre == "edge"
+    assert measure_settings(load_settings(None).processing).detect.centre == "centroid"

@@ -47,6 +47,7 @@ def _add_bundle_options(q: argparse.ArgumentParser) -> None:
     q.add_argument("--min-area-px", type=int, default=None, help="as for measure")
     q.add_argument("--max-area-px", type=int, default=None, help="as for measure")
     q.add_argument("--bit-depth", type=int, choices=range(8, 17), default=None, metavar="8-16", help="as for measure")
+    q.add_argument("--centre", choices=["centroid", "edge"], default=None, help="as for measure")
     q.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
 
 

@@ -125,6 +125,7 @@ class MeasureSettings:
         roi_tracking: bool = True,
         range_mm: tuple[float, float] | None = None,
         bit_depth: int | None = None,
+        centre: str | None = None,
     ) -> MeasureSettings:
         """The settings of the measuring options as the service's ``[processing]`` section, ``posecell
         measure`` and ``posecell calibrate camera`` name them (the one mapping of those knobs).
@@ -136,7 +137,8 @@ class MeasureSettings:
         (nearest, farthest; mm) narrows the area limits to the field's targets. ``bit_depth`` (8-16)
         is the images' significant bits, so their saturation level (``2 ** bit_depth - 1``, which the
         8-bit levels scale to): a 12-bit camera's frames come as uint16 whose values end at 4095; None:
-        the image dtype's maximum.
+        the image dtype's maximum. ``centre``: what a target's centre is measured as, "centroid" or
+        "edge" (:attr:`DetectSettings.centre`).
         """
         if code_family is not None and code_family not in FAMILIES:
             raise ValueError(f"unknown code family {code_family!r}; choose from {', '.join(FAMILIES)}")
@@ -149,6 +151,7 @@ class MeasureSettings:
             min_contrast_dn=d.min_contrast_dn if min_contrast_dn is None else min_contrast_dn,
             min_area_px=d.min_area_px if min_area_px is None else min_area_px,
             max_area_px=d.max_area_px if max_area_px is None else max_area_px,
+            centre=d.centre if centre is None else centre,
         )
         return replace(
             m,

@@ -60,6 +60,7 @@ def measure_settings(p: ProcessingConfig, bit_depth: int | None = None) -> Measu
         max_sigma0_px=p.max_sigma0_px,
         correct_eccentricity=p.correct_eccentricity,
         roi_tracking=p.roi_tracking,
+        centre=p.centre,
     )
 
 
@@ -138,12 +139,14 @@ class CameraProcessor:
 
     def measurement_report(self) -> dict[str, Any]:
         """Where this camera's frames are measured: ``process`` (its pid, children replaced) or ``thread``;
-        and the frames' bit depth the measurement was set up for (None: the image dtype's)."""
+        the frames' bit depth the measurement was set up for (None: the image dtype's); and what a
+        target's centre is measured as (``centroid`` or ``edge``; None before the first set-up)."""
         if self._process is None:
             where = {"in": "thread" if self._measurer is not None else None, "pid": None, "restarts": 0}
         else:
             where = {"in": "process", "pid": self._process.pid, "restarts": self._process.restarts}
-        return {**where, "bit_depth": self._bit_depth}
+        centre = self._processing.centre if self._processing is not None else None
+        return {**where, "bit_depth": self._bit_depth, "centre": centre}
 
     @property
     def depth(self) -> int:

@@ -96,6 +96,7 @@ class MeasureOptions:
     min_area_px: int | None = None
     max_area_px: int | None = None
     bit_depth: int | None = None  # the images' significant bits (None: their dtype's)
+    centre: str | None = None  # "centroid" or "edge" (None: the detector's default)
     start_sigma_px: float = 1.0  # the start camera's unmodelled distortion, px
     start_max_sigma0_px: float = 5.0
 
@@ -174,6 +175,7 @@ def measure_images(
         min_area_px=options.min_area_px,
         max_area_px=options.max_area_px,
         bit_depth=options.bit_depth,
+        centre=options.centre,
         sigma_px=options.start_sigma_px if first_pass else None,
         max_sigma0_px=options.start_max_sigma0_px if first_pass else None,
         roi_tracking=False,
@@ -256,6 +258,7 @@ def common_options(args: Any) -> dict[str, Any]:
         min_area_px=args.min_area_px,
         max_area_px=args.max_area_px,
         bit_depth=args.bit_depth,
+        centre=args.centre,
     )
     return {
         "scale_bars": bars,

@@ -64,6 +64,7 @@ from service.core.targets.detect_windows import (
     blobs_from_table,
     measure_all,
 )
+from service.core.targets.edge_centre import with_edge_centres
 
 # the names callers import from here (the types are defined in detect_types)
 __all__ = ["REASONS", "Blobs", "DetectSettings", "DetectWork", "Rejections", "detect_blobs", "measure_windows"]
@@ -169,10 +170,10 @@ def detect_blobs(
         _median(back.tiles),
         float(back.tiles.max()),
     )
-    return (
-        blobs_from(meas, (wr < 0).nonzero()[0], sigma, fill, ringed[todo]),
-        Rejections(reason[rej], ct.box[rej], centre[rej], work),
-    )
+    blobs = blobs_from(meas, (wr < 0).nonzero()[0], sigma, fill, ringed[todo])
+    if settings.centre == "edge":
+        blobs = with_edge_centres(img, blobs)
+    return blobs, Rejections(reason[rej], ct.box[rej], centre[rej], work)
 
 
 def measure_windows(
@@ -221,4 +222,7 @@ def measure_windows(
     table, sigma, fill, found = measure_predicted_kernel(
         img, uv, half, seg, contrast, full, *assess_constants(settings)
     )
-    return blobs_from_table(table, sigma, fill), found
+    blobs = blobs_from_table(table, sigma, fill)
+    if settings.centre == "edge":
+        blobs = with_edge_centres(img, blobs)
+    return blobs, found

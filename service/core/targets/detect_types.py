@@ -18,6 +18,7 @@ Array = NDArray[np.float64]
 Image = NDArray[np.uint8] | NDArray[np.uint16]  # a frame, once detect's image check has accepted it
 DTYPE_MAX = {np.dtype(t).char: float(np.iinfo(t).max) for t in (np.uint8, np.uint16)}  # np.iinfo is slow per call
 
+CENTRES = ("centroid", "edge")  # what a target's centre is measured as (DetectSettings.centre)
 REASONS = ("saturated", "cut_off", "merged_or_misshapen", "too_small", "too_big", "low_contrast", "ring", "too_many")
 SATURATED, CUT_OFF, MISSHAPEN, TOO_SMALL, TOO_BIG, LOW_CONTRAST, RING, TOO_MANY = range(len(REASONS))
 
@@ -38,13 +39,22 @@ class DetectSettings:
     # the image's noise sigma (image DN) for measure_windows, e.g. the last full frame's
     # DetectWork.noise_dn; detect_blobs measures its own. None: min_contrast_dn's levels alone
     noise_dn: float | None = None
+    # what a target's centre is measured as: "centroid" (intensity-weighted, in the window) or
+    # "edge" (the disk's ellipse fitted to its half-level edge: service.core.targets.edge_centre)
+    centre: str = "centroid"
+
+    def __post_init__(self) -> None:
+        if self.centre not in CENTRES:
+            raise ValueError(f"centre must be one of {', '.join(CENTRES)}, not {self.centre!r}")
 
 
 @dataclass(frozen=True)
 class Blobs:
     """Measured targets (N of them), in no particular order.
 
-    uv : (N, 2) float, px -- background-corrected intensity-weighted centroid
+    uv : (N, 2) float, px -- background-corrected intensity-weighted centroid, or with
+        ``DetectSettings.centre`` "edge" the centre of the ellipse fitted to the half-level edge
+        (where that fit holds; else the centroid)
     ellipse : (N, 5) float -- u_c px, v_c px, a_px (semi-major), b_px (semi-minor), angle rad of the
         major axis from +u towards +v in (-pi/2, pi/2]: the disk's edge, blur removed
     sigma_px : (N,) float, px -- predicted standard deviation of each coordinate of ``uv``
