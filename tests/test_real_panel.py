@@ -437,7 +437,7 @@ def test_real_panel_camera_is_calibrated_with_default_detection(camera_calibrate
 def test_edge_centres_calibrate_the_real_panel_twice_as_consistently(camera_calibrated_by_posecell, tmp_path):
     """``calibrate camera --centre edge`` on the same 20 real images: the targets' centres fitted to
     their half-level edges instead of intensity centroids. The self-calibration's sigma0 falls from
-    0.029 to 0.016 px (seen), with a third of the rejections, and the camera agrees within its
+    0.029 to 0.014 px (seen), with a third of the rejections, and the camera agrees within its
     sigma; each image's resection with its own camera is tighter too."""
     _, centroid = camera_calibrated_by_posecell
     data = shared_data(DATA)

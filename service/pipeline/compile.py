@@ -36,6 +36,7 @@ GROUPS = (
         "service.core._kernels.roi_kernel",
         "service.sim._raster_kernel",
         "service.core._kernels.json_kernel",
+        "service.core._kernels.edge_kernel",
     ),
     ("service.core._kernels.geometry_kernels", "service.core._kernels.resection_kernel", "service.core.targets.decode"),
 )

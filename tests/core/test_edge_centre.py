@@ -64,18 +64,23 @@ def test_edge_centres_are_as_precise_as_centroids_or_more_and_their_sigma_holds(
 def test_a_fit_that_cannot_hold_leaves_the_centroid():
     f = frames(RenderSettings(), n=1)[0]
     blobs, _ = detect_blobs(f.image)
-    e = blobs.ellipse[:4].copy()
+    big = int(np.argmax(blobs.ellipse[:, 3]))  # a coded target's disk: 9 px radius
+    uv, e, bg = (
+        blobs.uv[[0, 1, big, big]].copy(),
+        blobs.ellipse[[0, 1, big, big]].copy(),
+        blobs.background_dn[[0, 1, big, big]],
+    )
     e[0, 2] = np.nan  # no ellipse
-    e[1, :2] = [5.0, 5.0]  # on the dark background: no edge
-    e[2, 2:4] *= 3.0  # three times too big: the fit lands far from it and is not used
-    uv, sigma, ok = edge_centres(f.image, e)
-    assert not ok[:3].any() and np.all(np.isnan(sigma[:3])) and ok[3]
-    np.testing.assert_array_equal(uv[:3], e[:3, :2])
+    uv[1] = [5.0, 5.0]  # on the dark background: no edge
+    uv[2, 0] += 0.8 * e[2, 3]  # a "centroid" far from the disk's centre: the fit is not taken
+    got, sigma, ok = edge_centres(f.image, uv, e, bg)
+    assert ok.tolist() == [False, False, False, True] and np.all(np.isnan(sigma[:3]))
+    np.testing.assert_array_equal(got[:3], uv[:3])
     moved = with_edge_centres(f.image, blobs)
     assert len(moved) == len(blobs) and np.all(np.isfinite(moved.uv))
     np.testing.assert_array_equal(moved.ellipse[:, :2], moved.uv)
     with pytest.raises(ValueError, match="uint8 or uint16"):
-        edge_centres(f.image.astype(np.float32), e)
+        edge_centres(f.image.astype(np.float32), uv, e, bg)
     with pytest.raises(ValueError, match="centre must be one of"):
         DetectSettings(centre="median")
 

@@ -203,12 +203,7 @@ def _refine(img, mode, e, rho, step, dirs, pts, lo_index, lo_gamma, out, ws, fou
     """Re-fit the disk ellipse ``e`` to the half-level edge along the rays ``dirs`` (D, 2) sampled
     at ``rho`` (R,) (``pts`` = rho x dirs); write it to ``out`` (5,). Step 1 of the
     :mod:`~service.core.targets.decode` docstring. ``ws`` (2 R D + 6 D,), ``found`` (D,) bool,
-    ``ray`` (D, 2) and ``G``, ``g``, ``row`` (see :func:`_fit_conic`) are scratch.
-
-    Returns whether the fit held (else ``out`` is ``e``, its axes perhaps moved by a common edge
-    offset) and the standard deviation (px) of its centre in each coordinate: the edge points'
-    scatter about the fitted ellipse (radially, ``n - 5`` degrees of freedom) times ``sqrt(2 / n)``,
-    a circle's centre fitted to ``n`` points spread round it (NaN when the fit did not hold)."""
+    ``ray`` (D, 2) and ``G``, ``g``, ``row`` (see :func:`_fit_conic`) are scratch."""
     nr, nd = rho.size, dirs.shape[0]
     m00, m01, m10, m11 = _affine(e)
     vals, work = ws[: nr * nd], ws[nr * nd : 2 * nr * nd]
@@ -278,24 +273,13 @@ def _refine(img, mode, e, rho, step, dirs, pts, lo_index, lo_gamma, out, ws, fou
     ok = ok and 0.6 < r_minor < 1.6 and 0.75 < r_major < 1.33
     if ok:
         out[0], out[1], out[2], out[3], out[4] = e[0] + cx, e[1] + cy, A, B, angle
-        ca, sa = np.cos(angle), np.sin(angle)
-        ss = 0.0
-        for d in range(nd):
-            if found[d]:
-                px, py = shifted[d] * ray[d, 0] - cx, shifted[d] * ray[d, 1] - cy
-                x, y = ca * px + sa * py, -sa * px + ca * py
-                q = np.sqrt((x / A) ** 2 + (y / B) ** 2)  # 1 on the fitted ellipse
-                res = np.sqrt(px * px + py * py) * (1.0 - 1.0 / q)
-                ss += res * res
-        return True, np.sqrt(ss / (n_found - 5) * 2.0 / n_found)
-    if n_found >= 8:  # one common size offset (px) from the median edge distance
+    elif n_found >= 8:  # one common size offset (px) from the median edge distance
         for d in range(nd):
             var[d] = (r50[d] - 1.0) * rim[d] if found[d] else np.nan
         delta = _finite_median(var, work)
         delta = delta if abs(delta) < 0.5 * b0 else 0.0
         out[2] += delta
         out[3] += delta
-    return False, np.nan
 
 
 @njit(cache=True, nogil=True)
@@ -622,27 +606,3 @@ def read_rings_kernel(
         for k in range(K):  # target sector k was read as sector k + roll
             bits[i, k], levels[i, k] = b[(k + roll) % K], lv[(k + roll) % K]
     return ok, code, values, bits, levels, ellipse
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def edge_centres_kernel(img, mode, e, rho, step, dirs, refine_pts, lo_index, lo_gamma):
-    """The centre of each disk ellipse ``e`` (N, 5) re-fitted to its half-level edge (:func:`_refine`):
-    (N, 2) px, its standard deviation (N,) px per coordinate and whether the fit held (N,); where it
-    did not, the given centre and NaN."""
-    n, nd = e.shape[0], dirs.shape[0]
-    uv = np.empty((n, 2))
-    sigma = np.full(n, np.nan)
-    ok = np.zeros(n, dtype=np.bool_)
-    ws = np.empty(2 * refine_pts.shape[0] + 6 * nd)
-    found, ray = np.zeros(nd, dtype=np.bool_), np.empty((nd, 2))
-    G, g, row, fit = np.empty((5, 5)), np.empty(5), np.empty(5), np.empty(5)
-    for i in range(n):
-        uv[i, 0], uv[i, 1] = e[i, 0], e[i, 1]
-        if not (np.isfinite(e[i, 0]) and np.isfinite(e[i, 1]) and e[i, 2] > 0 and e[i, 3] > 0):
-            continue
-        held, s = _refine(
-            img, mode, e[i], rho, step, dirs, refine_pts, lo_index, lo_gamma, fit, ws, found, ray, G, g, row
-        )
-        if held:
-            uv[i, 0], uv[i, 1], sigma[i], ok[i] = fit[0], fit[1], s, True
-    return uv, sigma, ok

@@ -380,16 +380,10 @@ def read_code(
 @lru_cache(maxsize=1)  # once per process
 def warm_up() -> None:
     """Compile (or load from numba's cache) the reader's kernel for 8-bit, 16-bit and float images,
-    writeable or not, with the background measured and given, and the edge centres' kernel, so that
-    no frame pays for it (each type ~10 s on one core). Cheap after the first call in a process."""
+    writeable or not, with the background measured and given, so that no frame pays for it (each
+    type ~10 s on one core). Cheap after the first call in a process."""
     for image in warm_images((np.uint8, np.uint16, np.float32), (48, 48)):
         if image.flags.writeable:  # its read-only view, next, shares the disk
             image[20:28, 20:28] = 200
         read_codes(image, [(23.5, 23.5, 4.0, 4.0, 0.0)])
         read_codes(image, [(23.5, 23.5, 4.0, 4.0, 0.0)], background_dn=[10.0])
-        if image.dtype in (np.uint8, np.uint16):  # the edge centres of service.core.targets.edge_centre
-            L, mode = _layout(POSECELL12), decode_kernel.FIXED8 if image.dtype == np.uint8 else decode_kernel.ROUNDED
-            e = np.array([[23.5, 23.5, 4.0, 4.0, 0.0]])
-            decode_kernel.edge_centres_kernel(
-                image, mode, e, L.rho, EDGE_STEP, L.dirs, L.refine_pts, L.lo_index, L.lo_gamma
-            )

@@ -1,0 +1,186 @@
+"""The edge centres of :mod:`service.core.targets.edge_centre`, compiled (numba).
+
+Each disk's edge is found where its rows and its columns cross the half level between its
+background and its core (linear interpolation between the two pixels either side), only where the
+row or column crosses the edge steeply (within 0.75 of the disk's half extent from its centre
+across them); a direct least-squares conic through those points gives the centre. Pixels, not
+bilinear samples along rays (the code reader's re-fit, :func:`~service.core._kernels.decode_kernel._refine`):
+as precise on rendered and real images and ~5x cheaper, so ROI tracking can afford it. The blur
+moves a curved edge inwards point-symmetrically, which leaves the centre where it is.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+from numba import njit
+
+from service.core._kernels import warm_images
+
+STEEP = 0.75  # rows (columns) used: within this fraction of the disk's half height (width) of its centre
+MIN_POINTS = 10  # edge points a fit needs (5 unknowns)
+MARGIN_PX = 3  # the window reaches this far beyond the disk's semi-major axis
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _crossings(img, fixed, lo_run, hi_run, centre, half, along_rows, px, py, n, cu, cv):
+    """Append the two half-level crossings of row (``along_rows``) or column ``fixed`` round pixel
+    ``centre`` to ``px``, ``py`` (relative to (cu, cv)), walking out while above ``half`` within
+    [lo_run, hi_run]; returns the new count."""
+    if along_rows:
+        if not img[fixed, centre] > half:
+            return n
+    elif not img[centre, fixed] > half:
+        return n
+    i = centre
+    while i > lo_run and (img[fixed, i - 1] if along_rows else img[i - 1, fixed]) > half:
+        i -= 1
+    j = centre
+    while j < hi_run and (img[fixed, j + 1] if along_rows else img[j + 1, fixed]) > half:
+        j += 1
+    if i == lo_run or j == hi_run:  # the disk reaches the window's edge: no crossing there
+        return n
+    a0 = float(img[fixed, i - 1] if along_rows else img[i - 1, fixed])
+    a1 = float(img[fixed, i] if along_rows else img[i, fixed])
+    b0 = float(img[fixed, j] if along_rows else img[j, fixed])
+    b1 = float(img[fixed, j + 1] if along_rows else img[j + 1, fixed])
+    left = (i - 1) + (half - a0) / (a1 - a0)
+    right = j + (b0 - half) / (b0 - b1)
+    for t in (left, right):
+        if along_rows:
+            px[n], py[n] = t - cu, fixed - cv
+        else:
+            px[n], py[n] = fixed - cu, t - cv
+        n += 1
+    return n
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _solve_in_place(M, x):
+    """``M x = b`` for the symmetric positive definite ``M`` (5, 5) and ``b`` given in ``x`` (5,), by
+    Gaussian elimination without pivoting (a ridge keeps the pivots positive), both overwritten;
+    returns ``x``. No allocation: it runs once per target."""
+    n = x.size
+    for k in range(n):
+        for i in range(k + 1, n):
+            f = M[i, k] / M[k, k]
+            for j in range(k, n):
+                M[i, j] -= f * M[k, j]
+            x[i] -= f * x[k]
+    for k in range(n - 1, -1, -1):
+        s = x[k]
+        for j in range(k + 1, n):
+            s -= M[k, j] * x[j]
+        x[k] = s / M[k, k]
+    return x
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def edge_centres_kernel(img, uv, e, background):
+    """Centres (N, 2) px of the disks whose centroids ``uv`` (N, 2), ellipses ``e`` (N, 5) ``(u_c,
+    v_c, a_px, b_px, angle_rad)`` and backgrounds (N,) DN are given, fitted to their half-level
+    edges; each centre's standard deviation (N,) px per coordinate, from the edge points' scatter
+    about the conic (``n - 5`` degrees of freedom) times ``sqrt(2 / n)``; and whether the fit held
+    (where not: the centroid, NaN). A fit holds with MIN_POINTS edge points or more, a real ellipse,
+    and a centre within half the disk's minor semi-axis (+ 0.5 px) of the centroid."""
+    h, w = img.shape
+    n = uv.shape[0]
+    out = uv.copy()
+    sigma = np.full(n, np.nan)
+    ok = np.zeros(n, dtype=np.bool_)
+    a_max = 0.0
+    for k in range(n):
+        if np.isfinite(e[k, 2]) and e[k, 2] > a_max:
+            a_max = e[k, 2]
+    cap = 4 * (2 * (int(np.ceil(a_max)) + MARGIN_PX) + 1)  # two crossings a row and a column
+    px, py = np.empty(cap), np.empty(cap)
+    G, g, core = np.empty((5, 5)), np.empty(5), np.empty(9)
+    for k in range(n):
+        cu, cv, a, b, ang = uv[k, 0], uv[k, 1], e[k, 2], e[k, 3], e[k, 4]
+        if not (np.isfinite(cu) and np.isfinite(cv) and a > 0 and b > 0):
+            continue
+        R = int(np.ceil(a)) + MARGIN_PX
+        ur, vr = int(np.rint(cu)), int(np.rint(cv))
+        if ur - R < 0 or vr - R < 0 or ur + R >= w or vr + R >= h:
+            continue
+        m = 0
+        for dv in range(-1, 2):
+            for du in range(-1, 2):
+                core[m] = float(img[vr + dv, ur + du])
+                m += 1
+        core.sort()
+        half = 0.5 * (background[k] + core[4])
+        if not core[4] > background[k]:
+            continue
+        ca, sa = np.cos(ang), np.sin(ang)
+        ext_u, ext_v = np.hypot(a * ca, b * sa), np.hypot(a * sa, b * ca)
+        npts = 0
+        for v in range(vr - R, vr + R + 1):  # rows: left and right edges
+            if abs(v - cv) <= STEEP * ext_v:
+                npts = _crossings(img, v, ur - R, ur + R, ur, half, True, px, py, npts, cu, cv)
+        for u in range(ur - R, ur + R + 1):  # columns: top and bottom edges
+            if abs(u - cu) <= STEEP * ext_u:
+                npts = _crossings(img, u, vr - R, vr + R, vr, half, False, px, py, npts, cu, cv)
+        if npts < MIN_POINTS:
+            continue
+        # direct conic A x^2 + B xy + C y^2 + D x + E y = 1 in units of a (well-conditioned): the
+        # normal equations' entries are the points' moments up to the fourth, summed once
+        m40 = m31 = m22 = m13 = m04 = m30 = m21 = m12 = m03 = m20 = m11 = m02 = m10 = m01 = 0.0
+        for i in range(npts):
+            x, y = px[i] / a, py[i] / a
+            xx, xy, yy = x * x, x * y, y * y
+            m40 += xx * xx
+            m31 += xx * xy
+            m22 += xx * yy
+            m13 += xy * yy
+            m04 += yy * yy
+            m30 += xx * x
+            m21 += xx * y
+            m12 += x * yy
+            m03 += yy * y
+            m20 += xx
+            m11 += xy
+            m02 += yy
+            m10 += x
+            m01 += y
+        G[0, 0], G[0, 1], G[0, 2], G[0, 3], G[0, 4] = m40, m31, m22, m30, m21
+        G[1, 1], G[1, 2], G[1, 3], G[1, 4] = m22, m13, m21, m12
+        G[2, 2], G[2, 3], G[2, 4] = m04, m12, m03
+        G[3, 3], G[3, 4], G[4, 4] = m20, m11, m02
+        for p in range(5):
+            for q in range(p):
+                G[p, q] = G[q, p]
+        g[0], g[1], g[2], g[3], g[4] = m20, m11, m02, m10, m01
+        tr = G[0, 0] + G[1, 1] + G[2, 2] + G[3, 3] + G[4, 4]
+        for p in range(5):
+            G[p, p] += 1e-9 * tr + 1e-12
+        c = _solve_in_place(G, g)
+        det = c[0] * c[2] - c[1] * c[1] / 4.0
+        if not det > 0:
+            continue
+        x0 = -0.5 * (c[2] * c[3] - 0.5 * c[1] * c[4]) / det
+        y0 = -0.5 * (c[0] * c[4] - 0.5 * c[1] * c[3]) / det
+        if not (np.hypot(x0, y0) * a < 0.5 * b + 0.5 and 1.0 + 0.5 * (c[3] * x0 + c[4] * y0) > 0):
+            continue
+        # residuals: the algebraic one over the conic's gradient, px
+        ss = 0.0
+        for i in range(npts):
+            x, y = px[i] / a, py[i] / a
+            f = c[0] * x * x + c[1] * x * y + c[2] * y * y + c[3] * x + c[4] * y - 1.0
+            gx, gy = 2 * c[0] * x + c[1] * y + c[3], c[1] * x + 2 * c[2] * y + c[4]
+            d = f / np.sqrt(gx * gx + gy * gy) * a
+            ss += d * d
+        out[k, 0], out[k, 1] = cu + x0 * a, cv + y0 * a
+        sigma[k] = np.sqrt(ss / (npts - 5) * 2.0 / npts)
+        ok[k] = True
+    return out, sigma, ok
+
+
+@lru_cache(maxsize=1)  # once per process
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the kernel for 8- and 16-bit images, writeable or not."""
+    for img in warm_images((np.uint8, np.uint16), (48, 48)):
+        if img.flags.writeable:  # its read-only view, next, shares the disk
+            img[20:28, 20:28] = 200
+        edge_centres_kernel(img, np.array([[23.5, 23.5]]), np.array([[23.5, 23.5, 4.0, 4.0, 0.0]]), np.array([0.0]))
