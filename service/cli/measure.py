@@ -74,7 +74,7 @@ def add_parser(subparsers: Subparsers) -> None:
         choices=["centroid", "edge"],
         default=None,
         help="a target's centre: the intensity centroid (default), or the centre of the disk's ellipse "
-        "fitted to its half-level edge (about twice as consistent on real panels; ~2 us a target more)",
+        "fitted to its half-level edge (about twice as consistent on real panels; ~1 us a target more)",
     )
     m.add_argument("images", nargs="+", metavar="IMAGE", help="PNG, TIFF or PGM, 8 or 16 bit")
     m.set_defaults(func=run)

@@ -13,7 +13,7 @@ observations): self-calibration sigma0 0.029 px with centroids, 0.014 px with ed
 third of the rejections; resection sigma0 per image 0.038 -> 0.017 px (median). On DBAT's
 PhotoModeler sheet (printed dots, the images inverted) as consistent as PhotoModeler's own
 observations. On rendered frames (truth known) as precise as the centroid or more (0.011 against
-0.013 px RMS; read noise 4 DN 0.015 against 0.030). The cost: ~2 us a target.
+0.013 px RMS; read noise 4 DN 0.015 against 0.030). The cost: ~1 us a target.
 """
 
 from __future__ import annotations
