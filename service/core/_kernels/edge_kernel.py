@@ -17,6 +17,7 @@ import numpy as np
 from numba import njit
 
 from service.core._kernels import warm_images
+from service.core._kernels.geometry_kernels import solve_in_place
 
 STEEP = 0.75  # rows (columns) used: within this fraction of the disk's half height (width) of its centre
 MIN_POINTS = 10  # edge points a fit needs (5 unknowns)
@@ -68,26 +69,6 @@ def _median9(p):
         if p[i] > p[j]:
             p[i], p[j] = p[j], p[i]
     return p[4]
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _solve_in_place(M, x):
-    """``M x = b`` for the symmetric positive definite ``M`` (5, 5) and ``b`` given in ``x`` (5,), by
-    Gaussian elimination without pivoting (a ridge keeps the pivots positive), both overwritten;
-    returns ``x``. No allocation: it runs once per target."""
-    n = x.size
-    for k in range(n):
-        for i in range(k + 1, n):
-            f = M[i, k] / M[k, k]
-            for j in range(k, n):
-                M[i, j] -= f * M[k, j]
-            x[i] -= f * x[k]
-    for k in range(n - 1, -1, -1):
-        s = x[k]
-        for j in range(k + 1, n):
-            s -= M[k, j] * x[j]
-        x[k] = s / M[k, k]
-    return x
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -175,7 +156,7 @@ def edge_centres_kernel(img, uv, e, background):
         tr = G[0, 0] + G[1, 1] + G[2, 2] + G[3, 3] + G[4, 4]
         for p in range(5):
             G[p, p] += 1e-9 * tr + 1e-12
-        c = _solve_in_place(G, g)
+        c = solve_in_place(G, g)
         det = c[0] * c[2] - c[1] * c[1] / 4.0
         if not det > 0:
             continue

@@ -315,10 +315,15 @@ def eccentricity_kernel(ex, ey, p_field, R, t, c, radius, W):
 @njit(cache=True, nogil=True, error_model="numpy")
 def _solve6(N, g):
     """``N x = g`` by Gaussian elimination with partial pivoting (LAPACK's gesv, unblocked);
-    NaN where N is singular."""
-    n = g.size
-    M = N.copy()
-    x = g.copy()
+    NaN where N is singular. ``N`` and ``g`` are left as they are."""
+    return solve_in_place(N.copy(), g.copy())
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def solve_in_place(M, x):
+    """:func:`_solve6` on ``M`` and the right-hand side ``x``, both overwritten (``x`` becomes the
+    solution, returned): no allocation, for a solve per target in a loop."""
+    n = x.size
     for k in range(n):
         piv, big = k, abs(M[k, k])
         for i in range(k + 1, n):
