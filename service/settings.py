@@ -189,9 +189,9 @@ class ProcessingConfig(_Section):
     )
     max_sigma0_px: float = Field(0.5, gt=0, le=100, description="largest accepted sigma0 of a pose, px, (0, 100]")
     correct_eccentricity: bool = True
-    # what a target's centre is measured as: the intensity centroid, or the centre of the disk's
-    # ellipse fitted to its half-level edge (twice as consistent on real panels, ~1 us a target more)
-    centre: Literal["centroid", "edge"] = "centroid"
+    # what a target's centre is measured as: the centre of the disk's ellipse fitted to its half-level
+    # edge (twice as consistent on real panels), or the intensity centroid (~1 us a target less)
+    centre: Literal["centroid", "edge"] = "edge"
     min_contrast_dn: float | None = Field(
         None,
         gt=0,

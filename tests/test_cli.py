@@ -161,8 +161,9 @@ def test_bench_speed_reports_every_condition_of_the_matrix_beside_the_peer():
     names = [line.split("|")[1].strip() for line in rows]
     for cond in CONDITIONS:
         assert cond.name in names, (cond.name, r.stdout)
-    edge = [line for line in rows if "edge centres" in line]  # the full frame's and the ROI tracking's
-    assert len(edge) == 2 and all(float(line.split("|")[2]) > 0 for line in edge), edge
+    # the full frame's and the ROI tracking's with the centroids (not the default) beside the default's
+    centroids = [line for line in rows if "intensity centroids" in line]
+    assert len(centroids) == 2 and all(float(line.split("|")[2]) > 0 for line in centroids), centroids
     for line in rows:
         if line.split("|")[1].strip() in {c.name for c in CONDITIONS}:
             cells = [c.strip() for c in line.split("|")[2:-1]]

@@ -138,7 +138,8 @@ def test_real_panel_with_an_uncalibrated_camera_names_as_many_targets_from_a_doz
             named.append(len(result.targets) if isinstance(result, PoseResult) else 0)
         counts[codes_enough] = (np.array(named), sum(n_read))
     (every, rings_every), (dozen, rings_dozen) = counts[0], counts[12]
-    # here: 3298 named against 3266, each image within 2.5 % (some more, some fewer), 340 rings of 1393
+    # centroids: 3298 named against 3266, each image within 2.5 % (some more, some fewer), 340 rings of
+    # 1393; edge centres (the default): each image within 4.3 %
     assert dozen.sum() >= every.sum(), (dozen.sum(), every.sum())
-    assert (dozen >= 0.96 * every).all(), list(zip(every, dozen, strict=True))
+    assert (dozen >= 0.95 * every).all(), list(zip(every, dozen, strict=True))
     assert rings_dozen < 0.4 * rings_every, (rings_dozen, rings_every)

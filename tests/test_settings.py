@@ -241,7 +241,7 @@ def test_auto_exposure_refuses_limits_out_of_order(tmp_path):
 def test_the_centre_estimator_reaches_the_measurer(tmp_path):
     from service.runtime.processor import measure_settings
 
-    cfg = tmp_path / "edge.toml"
-    cfg.write_text('[processing]\ncentre = "edge"\n')
-    assert measure_settings(load_settings(cfg).processing).detect.centre == "edge"
-    assert measure_settings(load_settings(None).processing).detect.centre == "centroid"
+    cfg = tmp_path / "centroid.toml"
+    cfg.write_text('[processing]\ncentre = "centroid"\n')
+    assert measure_settings(load_settings(cfg).processing).detect.centre == "centroid"
+    assert measure_settings(load_settings(None).processing).detect.centre == "edge"

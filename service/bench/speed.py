@@ -175,22 +175,22 @@ def run(n_frames: int, seed: int, conditions_frames: int = 30) -> str:
                 err_out.append(pose_difference(out.result.T_field_camera, frame.T_field_camera))
         return modes
 
-    # the targets' centres fitted to their edges (centre = "edge"): the full frame, after the
-    # centroid's run (the peer's turns are in that one), and the ROI tracking
-    edge_settings = MeasureSettings.from_options(centre="edge")
-    edge_full, edge_ms, edge_err, edge_c = FrameMeasurer(camera, field, edge_settings), [], [], []
-    edge_full.measure(frames[0].image)
+    # the targets' centres as intensity centroids (centre = "centroid", the default before edge
+    # centres): the full frame, after the default's run (the peer's turns are in that one), and the ROI
+    centroid_settings = MeasureSettings.from_options(centre="centroid")
+    centroid_full, centroid_ms, centroid_err, centroid_c = FrameMeasurer(camera, field, centroid_settings), [], [], []
+    centroid_full.measure(frames[0].image)
     for frame in frames:
         t0 = time.perf_counter()
-        out = edge_full.measure(frame.image)
-        edge_ms.append((time.perf_counter() - t0) * 1e3)
+        out = centroid_full.measure(frame.image)
+        centroid_ms.append((time.perf_counter() - t0) * 1e3)
         if isinstance(out.result, PoseResult):
-            edge_err.append(pose_difference(out.result.T_field_camera, frame.T_field_camera))
+            centroid_err.append(pose_difference(out.result.T_field_camera, frame.T_field_camera))
             truth = dict(zip(frame.ids, frame.uv_true, strict=True))
-            edge_c += [np.array(t.uv) - truth[t.id] for t in out.result.targets]
-    edge_roi_ms: list[float] = []
-    edge_roi_err: list[tuple[float, float]] = []
-    track(edge_settings, edge_roi_ms, edge_roi_err)
+            centroid_c += [np.array(t.uv) - truth[t.id] for t in out.result.targets]
+    centroid_roi_ms: list[float] = []
+    centroid_roi_err: list[tuple[float, float]] = []
+    track(centroid_settings, centroid_roi_ms, centroid_roi_err)
 
     roi_stages: dict[str, list[float]] = {}
     modes = track(MeasureSettings(), roi_ms, roi_err, roi_stages)
@@ -208,8 +208,8 @@ def run(n_frames: int, seed: int, conditions_frames: int = 30) -> str:
         a = np.array(e)
         return f"{np.median(a[:, 0]):.4f}", f"{np.median(a[:, 1]):.5f}"
 
-    oc, pc, ec = cstats(ours_c), cstats(peer_c), cstats(edge_c)
-    ef, er = perr(edge_err), perr(edge_roi_err)
+    oc, pc, cc = cstats(ours_c), cstats(peer_c), cstats(centroid_c)
+    cf, cr = perr(centroid_err), perr(centroid_roi_err)
     of, pf, orr, ofa = perr(full_err), perr(peer_err), perr(roi_err), perr(fast_err)
     ratio_full = np.median(peer_ms) / np.median(full_ms)
     ratio_roi = np.median(peer_ms) / np.median(roi_ms) if roi_ms else float("nan")
@@ -221,7 +221,7 @@ def run(n_frames: int, seed: int, conditions_frames: int = 30) -> str:
         "| pipeline | median ms/frame | frames/s | × peer speed | centre RMS px | centre bias px | "
         "pose error mm (median) | pose error deg (median) |",
         "|---|---|---|---|---|---|---|---|",
-        f"| posecell full frame (detect, decode, identify, resect) | {_stats(full_ms)} | "
+        f"| posecell full frame (detect, decode, identify, resect; edge centres, the default) | {_stats(full_ms)} | "
         f"{1e3 / np.median(full_ms):.0f} | {ratio_full:.2f} | {oc[0]} | {oc[1]} | {of[0]} | {of[1]} |",
         f"| posecell ROI tracking (default: tight windows, two stages where the prediction is off) | "
         f"{_stats(roi_ms)} | {1e3 / np.median(roi_ms) if roi_ms else 0:.0f} | "
@@ -230,13 +230,14 @@ def run(n_frames: int, seed: int, conditions_frames: int = 30) -> str:
         f"{1e3 / np.median(fast_ms) if fast_ms else 0:.0f} | "
         f"{np.median(peer_ms) / np.median(fast_ms) if fast_ms else float('nan'):.2f} | (same) | (same) | "
         f"{ofa[0]} | {ofa[1]} |",
-        f'| posecell full frame, edge centres (`centre = "edge"`) | {_stats(edge_ms)} | '
-        f"{1e3 / np.median(edge_ms):.0f} | {np.median(peer_ms) / np.median(edge_ms):.2f} | {ec[0]} | {ec[1]} | "
-        f"{ef[0]} | {ef[1]} |",
-        f"| posecell ROI tracking, edge centres | {_stats(edge_roi_ms)} | "
-        f"{1e3 / np.median(edge_roi_ms) if edge_roi_ms else 0:.0f} | "
-        f"{np.median(peer_ms) / np.median(edge_roi_ms) if edge_roi_ms else float('nan'):.2f} | (same) | (same) | "
-        f"{er[0]} | {er[1]} |",
+        f'| posecell full frame, intensity centroids (`centre = "centroid"`) | {_stats(centroid_ms)} | '
+        f"{1e3 / np.median(centroid_ms):.0f} | {np.median(peer_ms) / np.median(centroid_ms):.2f} | {cc[0]} | {cc[1]} | "
+        f"{cf[0]} | {cf[1]} |",
+        f"| posecell ROI tracking, intensity centroids | {_stats(centroid_roi_ms)} | "
+        f"{1e3 / np.median(centroid_roi_ms) if centroid_roi_ms else 0:.0f} | "
+        f"{np.median(peer_ms) / np.median(centroid_roi_ms) if centroid_roi_ms else float('nan'):.2f} | "
+        "(same) | (same) | "
+        f"{cr[0]} | {cr[1]} |",
         f"| peer: OpenCV threshold + components + solvePnP (ids given) | {_stats(peer_ms)} | "
         f"{1e3 / np.median(peer_ms):.0f} | 1.00 | {pc[0]} | {pc[1]} | {pf[0]} | {pf[1]} |",
         "",

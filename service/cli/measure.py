@@ -73,8 +73,9 @@ def add_parser(subparsers: Subparsers) -> None:
         "--centre",
         choices=["centroid", "edge"],
         default=None,
-        help="a target's centre: the intensity centroid (default), or the centre of the disk's ellipse "
-        "fitted to its half-level edge (about twice as consistent on real panels; ~1 us a target more)",
+        help="a target's centre: the centre of the disk's ellipse fitted to its half-level edge (default: "
+        "about twice as consistent on real panels), or the intensity centroid (~1 us a target less; "
+        "the default before 2026-12-06)",
     )
     m.add_argument("images", nargs="+", metavar="IMAGE", help="PNG, TIFF or PGM, 8 or 16 bit")
     m.set_defaults(func=run)

@@ -17,6 +17,7 @@ import numpy as np
 from numba import njit
 
 from service.core._kernels import warm_images
+from service.core._kernels.contour_kernel import _maximum
 from service.core._kernels.geometry_kernels import solve_in_place
 
 STEEP = 0.75  # rows (columns) used: within this fraction of the disk's half height (width) of its centre
@@ -76,7 +77,8 @@ def edge_centres_kernel(img, uv, e, background):
     """Centres (N, 2) px of the disks whose centroids ``uv`` (N, 2), ellipses ``e`` (N, 5) ``(u_c,
     v_c, a_px, b_px, angle_rad)`` and backgrounds (N,) DN are given, fitted to their half-level
     edges; each centre's standard deviation (N,) px per coordinate, from the edge points' scatter
-    about the conic (``n - 5`` degrees of freedom) times ``sqrt(2 / n)``; and whether the fit held
+    about the conic (their algebraic residuals over the conic's RMS gradient, ``n - 5`` degrees of
+    freedom) times ``sqrt(2 / n)``; and whether the fit held
     (where not: the centroid, NaN). A fit holds with MIN_POINTS edge points or more, a real ellipse,
     and a centre within half the disk's minor semi-axis (+ 0.5 px) of the centroid."""
     h, w = img.shape
@@ -91,6 +93,7 @@ def edge_centres_kernel(img, uv, e, background):
     cap = 4 * (2 * (int(np.ceil(a_max)) + MARGIN_PX) + 1)  # two crossings a row and a column
     px, py = np.empty(cap), np.empty(cap)
     G, g, core = np.empty((5, 5)), np.empty(5), np.empty(9)
+    G0, g0 = np.empty((5, 5)), np.empty(5)
     for k in range(n):
         cu, cv, a, b, ang = uv[k, 0], uv[k, 1], e[k, 2], e[k, 3], e[k, 4]
         if not (np.isfinite(cu) and np.isfinite(cv) and a > 0 and b > 0):
@@ -110,26 +113,28 @@ def edge_centres_kernel(img, uv, e, background):
             continue
         ca, sa = np.cos(ang), np.sin(ang)
         ext_u, ext_v = np.hypot(a * ca, b * sa), np.hypot(a * sa, b * ca)
-        npts = 0
+        npts, inv_a = 0, 1.0 / a  # the points in units of a (well-conditioned)
         for v in range(vr - R, vr + R + 1):  # rows: left and right edges
             if abs(v - cv) <= STEEP * ext_v:
                 x0, x1 = _run_ends(img[v], ur, ur - R, ur + R, half)
                 if x0 == x0:
-                    px[npts], py[npts], px[npts + 1], py[npts + 1] = x0 - cu, v - cv, x1 - cu, v - cv
+                    y = (v - cv) * inv_a
+                    px[npts], py[npts], px[npts + 1], py[npts + 1] = (x0 - cu) * inv_a, y, (x1 - cu) * inv_a, y
                     npts += 2
         for u in range(ur - R, ur + R + 1):  # columns: top and bottom edges
             if abs(u - cu) <= STEEP * ext_u:
                 y0, y1 = _run_ends(img[:, u], vr, vr - R, vr + R, half)
                 if y0 == y0:
-                    px[npts], py[npts], px[npts + 1], py[npts + 1] = u - cu, y0 - cv, u - cu, y1 - cv
+                    x = (u - cu) * inv_a
+                    px[npts], py[npts], px[npts + 1], py[npts + 1] = x, (y0 - cv) * inv_a, x, (y1 - cv) * inv_a
                     npts += 2
         if npts < MIN_POINTS:
             continue
-        # direct conic A x^2 + B xy + C y^2 + D x + E y = 1 in units of a (well-conditioned): the
-        # normal equations' entries are the points' moments up to the fourth, summed once
+        # direct conic A x^2 + B xy + C y^2 + D x + E y = 1: the normal equations' entries are the
+        # points' moments up to the fourth, summed once
         m40 = m31 = m22 = m13 = m04 = m30 = m21 = m12 = m03 = m20 = m11 = m02 = m10 = m01 = 0.0
         for i in range(npts):
-            x, y = px[i] / a, py[i] / a
+            x, y = px[i], py[i]
             xx, xy, yy = x * x, x * y, y * y
             m40 += xx * xx
             m31 += xx * xy
@@ -153,6 +158,8 @@ def edge_centres_kernel(img, uv, e, background):
             for q in range(p):
                 G[p, q] = G[q, p]
         g[0], g[1], g[2], g[3], g[4] = m20, m11, m02, m10, m01
+        G0[:, :] = G  # unregularised: the residuals' sum below
+        g0[:] = g
         tr = G[0, 0] + G[1, 1] + G[2, 2] + G[3, 3] + G[4, 4]
         for p in range(5):
             G[p, p] += 1e-9 * tr + 1e-12
@@ -164,14 +171,24 @@ def edge_centres_kernel(img, uv, e, background):
         y0 = -0.5 * (c[0] * c[4] - 0.5 * c[1] * c[3]) / det
         if not (np.hypot(x0, y0) * a < 0.5 * b + 0.5 and 1.0 + 0.5 * (c[3] * x0 + c[4] * y0) > 0):
             continue
-        # residuals: the algebraic one over the conic's gradient, px
-        ss = 0.0
-        for i in range(npts):
-            x, y = px[i] / a, py[i] / a
-            f = c[0] * x * x + c[1] * x * y + c[2] * y * y + c[3] * x + c[4] * y - 1.0
-            gx, gy = 2 * c[0] * x + c[1] * y + c[3], c[1] * x + 2 * c[2] * y + c[4]
-            d = f / np.sqrt(gx * gx + gy * gy) * a
-            ss += d * d
+        # the points' scatter about the conic from the same moments, without a second pass over them:
+        # the squared algebraic residuals f = c . (x^2, xy, y^2, x, y) - 1 summed (c' G c - 2 c' g + n),
+        # over the mean squared gradient of f (the conic's own, from the moments up to the second)
+        ff = float(npts)
+        for p in range(5):
+            ff -= 2.0 * c[p] * g0[p]
+            for q in range(5):
+                ff += c[p] * G0[p, q] * c[q]
+        c0, c1, c2, c3, c4 = c[0], c[1], c[2], c[3], c[4]
+        gg = (
+            (4 * c0 * c0 + c1 * c1) * m20
+            + (c1 * c1 + 4 * c2 * c2) * m02
+            + 4 * c1 * (c0 + c2) * m11
+            + 2 * (2 * c0 * c3 + c1 * c4) * m10
+            + 2 * (c1 * c3 + 2 * c2 * c4) * m01
+            + npts * (c3 * c3 + c4 * c4)
+        )
+        ss = _maximum(ff, 0.0) / (gg / npts) * a * a
         out[k, 0], out[k, 1] = cu + x0 * a, cv + y0 * a
         sigma[k] = np.sqrt(ss / (npts - 5) * 2.0 / npts)
         ok[k] = True

@@ -39,9 +39,9 @@ class DetectSettings:
     # the image's noise sigma (image DN) for measure_windows, e.g. the last full frame's
     # DetectWork.noise_dn; detect_blobs measures its own. None: min_contrast_dn's levels alone
     noise_dn: float | None = None
-    # what a target's centre is measured as: "centroid" (intensity-weighted, in the window) or
-    # "edge" (the disk's ellipse fitted to its half-level edge: service.core.targets.edge_centre)
-    centre: str = "centroid"
+    # what a target's centre is measured as: "edge" (the disk's ellipse fitted to its half-level edge:
+    # service.core.targets.edge_centre) or "centroid" (intensity-weighted, in the window)
+    centre: str = "edge"
 
     def __post_init__(self) -> None:
         if self.centre not in CENTRES:

@@ -4,7 +4,8 @@ The reference finds each disk's edge as the kernel's docstring says, with array 
 row (column) of the window that crosses the disk steeply, the run of pixels above the half level
 through the centroid's pixel (``np.flatnonzero`` of those below it on either side), the linear
 crossings at its ends; then the direct conic through all of them by ``np.linalg.solve`` (the same
-tiny ridge), the same acceptance, and the centre's sigma from the points' distances to the conic.
+tiny ridge), the same acceptance, and the centre's sigma from the points' algebraic residuals,
+summed point by point, over the conic's RMS gradient.
 """
 
 from __future__ import annotations
@@ -71,9 +72,10 @@ def _reference(image, uv, e, bg):
     if not (np.hypot(x0, y0) * a < 0.5 * b + 0.5 and 1 + 0.5 * (D * x0 + E * y0) > 0):
         return None
     f = M @ [A, B, C, D, E] - 1
-    grad = np.hypot(2 * A * x + B * y + D, B * x + 2 * C * y + E)
+    grad2 = (2 * A * x + B * y + D) ** 2 + (B * x + 2 * C * y + E) ** 2
     n = len(pts)
-    return np.array([cu + x0 * a, cv + y0 * a]), np.sqrt(np.sum((f / grad * a) ** 2) / (n - 5) * 2 / n)
+    ss = np.sum(f**2) / np.mean(grad2) * a * a  # the residuals' sum of squares over the RMS gradient
+    return np.array([cu + x0 * a, cv + y0 * a]), np.sqrt(ss / (n - 5) * 2 / n)
 
 
 @pytest.fixture(scope="module")
