@@ -41,6 +41,7 @@ SLOW_MODULES = (
     "tests/api/test_robot_calibration.py",
     "tests/test_real_panel.py",
     "tests/test_dbat_reference.py",
+    "tests/test_dbat_images.py",
 )
 
 

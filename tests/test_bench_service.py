@@ -90,3 +90,14 @@ def test_the_lean_load_clients_read_every_message_and_answer_pings_over_a_real_w
     assert read_streams(f"127.0.0.1:{port[0]}", "/ws", 3, 1.5) == 3 * len(sizes)
     assert len(pongs) == 3
     t.join(5.0)
+
+
+@pytest.mark.parametrize("centre", [None, "centroid", "edge"])
+def test_the_benchmarks_service_measures_with_the_centres_asked_for(tmp_path, centre):
+    from service.settings import load_settings
+
+    config = tmp_path / "bench.toml"
+    config.write_text(bench_service._config(500.0, centre))
+    settings = load_settings(config)
+    assert settings.processing.centre == (centre or "edge")
+    assert settings.cameras[0].driver == "replay" and settings.cameras[0].frame_rate_hz == 500.0

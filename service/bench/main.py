@@ -35,7 +35,7 @@ def _service(args: argparse.Namespace) -> str:
 
     rates = tuple(float(r) for r in args.rates.split(","))
     clients = bench_service.parse_clients(args.clients)
-    return bench_service.run(rates_hz=rates, clients=clients, seconds=args.seconds)
+    return bench_service.run(rates_hz=rates, clients=clients, seconds=args.seconds, centre=args.centre)
 
 
 def _host(args: argparse.Namespace) -> str:

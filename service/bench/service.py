@@ -60,7 +60,8 @@ CLIENTS = ((1, False), (50, False), (50, True))  # (clients, the others than the
 _CLOCK_TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
 
 
-def _config(rate_hz: float) -> str:
+def _config(rate_hz: float, centre: str | None = None) -> str:
+    processing = "" if centre is None else f'\n[processing]\ncentre = "{centre}"\n'
     return f"""
 [[cameras]]
 name = "cam0"
@@ -70,7 +71,7 @@ options = {{ source = "sim", loop = "bounce" }}
 
 [storage]
 stream_every_s = 0.0  # every result committed
-"""
+{processing}"""
 
 
 def _cpu_s(pid: int) -> float:
@@ -183,12 +184,17 @@ def _quantile(values: list[float], q: float) -> float:
 
 
 def measure(
-    rate_hz: float, n_clients: int, seconds: float, warmup_s: float = 3.0, pose_only: bool = False
+    rate_hz: float,
+    n_clients: int,
+    seconds: float,
+    warmup_s: float = 3.0,
+    pose_only: bool = False,
+    centre: str | None = None,
 ) -> dict[str, Any]:
-    """One row of the table (see the module docstring)."""
+    """One row of the table (see the module docstring); ``centre``: ``[processing] centre`` (None: the default)."""
     with tempfile.TemporaryDirectory() as state:
         config = Path(state) / "bench.toml"
-        config.write_text(_config(rate_hz))
+        config.write_text(_config(rate_hz, centre))
         with serve_child(Path(state), config) as served:
             return _measure(served.address, served.pid, rate_hz, n_clients, seconds, warmup_s, pose_only)
 
@@ -241,9 +247,12 @@ def parse_clients(spec: str) -> tuple[tuple[int, bool], ...]:
 
 
 def run(
-    rates_hz: tuple[float, ...] = RATES_HZ, clients: tuple[tuple[int, bool], ...] = CLIENTS, seconds: float = 10.0
+    rates_hz: tuple[float, ...] = RATES_HZ,
+    clients: tuple[tuple[int, bool], ...] = CLIENTS,
+    seconds: float = 10.0,
+    centre: str | None = None,
 ) -> str:
-    rows = [measure(r, n, seconds, pose_only=p) for r in rates_hz for n, p in clients]
+    rows = [measure(r, n, seconds, pose_only=p, centre=centre) for r in rates_hz for n, p in clients]
     lines = [
         "| camera Hz | clients | results/s | lost | exposure → WS p50 / p99 / max ms "
         "| exposure → commit p99 ms | CPU ms/frame |",
@@ -272,10 +281,12 @@ def run(
     lines.append("")
     lines += [f"- *{name}*: {what}" for name, what in STAGES]
     lines.append(
-        f'\n`posecell serve` in a child process, the replay camera (`source = "sim"`), ROI tracking, every '
-        f"result stored; the probe takes every message with its targets (~15 kB); *pose only*: the other "
+        f'\n`posecell serve` in a child process, the replay camera (`source = "sim"`), ROI tracking, '
+        f"{'edge centres' if centre in (None, 'edge') else 'intensity centroids'} "
+        f'(`centre = "{centre or "edge"}"`), every result stored; the probe takes every message with its '
+        f"targets (~15 kB); *pose only*: the other "
         f"clients subscribe with `targets=false` (~2 kB); {seconds:.0f} s per row after a warm-up; "
         f"{os.cpu_count()} cores "
-        f"(`posecell bench service --seconds {seconds:.0f}`)."
+        f"(`posecell bench service --seconds {seconds:.0f}{'' if centre is None else ' --centre ' + centre}`)."
     )
     return "\n".join(lines)

@@ -44,6 +44,13 @@ def add_parser(subparsers: Subparsers) -> None:
     )
     b.add_argument("--seconds", type=float, default=10.0, help="measured seconds per row of the service section")
     b.add_argument(
+        "--centre",
+        choices=["edge", "centroid"],
+        default=None,
+        help="the service section: the targets' centres as the service measures them "
+        "([processing] centre; default: the service's, edge)",
+    )
+    b.add_argument(
         "--data",
         type=Path,
         default=None,

@@ -170,6 +170,20 @@ def test_the_usual_start_alone_serves_a_plate_a_volume_and_a_wrong_code(rng, mon
         assert np.all(np.abs(dt) < 5 * res.sigma_position_mm)
 
 
+def test_a_pose_that_rejects_a_quarter_of_the_points_is_kept_when_no_start_does_better(rng):
+    # five wrong codes of twenty: every start's adjustment succeeds but rejects more than a fifth,
+    # so none is confirmed and the best is kept. It raised AssertionError("unknown resection
+    # status 0"): the first adjustment's success was turned into an error (seen on a real panel
+    # image measured with edge centres)
+    T_true, p, uv = raised_plate_scene(rng, 20, np.zeros(20), 30.0, 1000.0)
+    wrong = np.arange(5)
+    p = wrong_ids(rng, p, wrong)
+    res = resect(CAMERA, p, uv + rng.normal(0.0, SIGMA_PX, uv.shape), sigma_px=SIGMA_PX)
+    assert sorted(res.rejected.tolist()) == wrong.tolist()
+    dt, _ = pose_error(res.T_field_camera, T_true)
+    assert np.all(np.abs(dt) < 5 * res.sigma_position_mm)
+
+
 # -- the real panel: MicMac's Circ-Code-Target, with its raised block ------------------
 #
 # Read as tests/test_real_panel.py reads it (nominal camera, AICON 14-bit codes); the panel's

@@ -63,5 +63,8 @@ def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels for the types the pipeline passes."""
     rows = np.arange(3, dtype=np.int64)
     window_half_size_kernel(np.full(3, 60.0), np.zeros(3, dtype=np.bool_), rows, np.full(3, 1000.0), 0.0067, 1.0)
-    # the disks' pixels come as a view of measure_predicted_kernel's table: (2, k) transposed
-    gather_found_kernel(np.array([0, -1, 1], dtype=np.int64), np.zeros((2, 2)).T, rows, np.zeros((3, 2)))
+    # the disks' pixels come as a view of measure_predicted_kernel's table, (2, k) transposed, or
+    # (edge centres, the default) as an array of their own
+    found = np.array([0, -1, 1], dtype=np.int64)
+    for blob_uv in (np.zeros((2, 2)).T, np.zeros((2, 2))):
+        gather_found_kernel(found, blob_uv, rows, np.zeros((3, 2)))

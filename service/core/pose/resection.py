@@ -307,6 +307,7 @@ def resect(
         return _result(out)
     # Without a start: the usual closed form, and only when its adjustment is not confirmed every
     # other one that applies, so that the common frame pays for one start and one adjustment.
+    first_error: SolveError | None
     try:
         out = adjust(closed_form_ideal(p, xy, c, spread))
     except SolveError as e:
@@ -314,7 +315,8 @@ def resect(
     else:
         if _confirmed(out, n):
             return _result(out)
-        first_error, start_failed = error(out), out[0] == START_BEHIND
+        # a success not confirmed (too many rejected) stays the best so far, and has no error
+        first_error, start_failed = (None if out[0] == OK else error(out)), out[0] == START_BEHIND
         best = out if out[0] == OK else None
     for T in fallback_starts(p, xy, c, CONSENSUS_PX * camera.mean_pixel_size_mm):
         cand = adjust(T)
@@ -328,6 +330,7 @@ def resect(
             # a start most points agreed with, adjusted: its verdict is the data's, not the start's
             first_error, start_failed = error(cand), False
     if best is None:
+        assert first_error is not None  # (None only with a successful first adjustment: the best)
         raise first_error
     return _result(best)
 
