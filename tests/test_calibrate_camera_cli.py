@@ -364,8 +364,9 @@ def test_real_panel_camera_self_calibrates_to_a_thirtieth_of_a_pixel(tmp_path, c
     cal = json.loads(out.read_text())
     c = cal["calibration"]
     assert len(c["images"]) == 20  # 043_0031, which MicMac rejected, too
-    assert 0.015 < c["sigma0_px"] < 0.05
-    assert all(0.015 < im["rms_px"] < 0.05 for im in c["images"]), [im["rms_px"] for im in c["images"]]
+    # edge centres (the default): sigma0 0.014 px, each image 0.012-0.017 (intensity centroids 0.029)
+    assert 0.008 < c["sigma0_px"] < 0.025
+    assert all(0.008 < im["rms_px"] < 0.025 for im in c["images"]), [im["rms_px"] for im in c["images"]]
     assert c["n_observations"] > 3000 and c["n_rejected"] < 0.03 * c["n_observations"]
     assert 24.0 < cal["c_mm"] < 25.5 and cal["sigma"]["c_mm"] < 0.01  # the 24 mm lens focused at ~1 m
     assert 0.5e-4 < cal["K1"] < 5e-4
