@@ -364,6 +364,7 @@ def test_real_panel_camera_self_calibrates_to_a_thirtieth_of_a_pixel(tmp_path, c
     cal = json.loads(out.read_text())
     c = cal["calibration"]
     assert len(c["images"]) == 20  # 043_0031, which MicMac rejected, too
+    assert c["centre"] == "edge"  # what the measurement with this camera should use too
     # edge centres (the default): sigma0 0.014 px, each image 0.012-0.017 (intensity centroids 0.029)
     assert 0.008 < c["sigma0_px"] < 0.025
     assert all(0.008 < im["rms_px"] < 0.025 for im in c["images"]), [im["rms_px"] for im in c["images"]]

@@ -275,6 +275,19 @@ def test_measure_goes_on_past_unreadable_black_and_saturated_images(tmp_path):
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 4
 
 
+def test_measure_warns_when_the_camera_was_calibrated_with_the_other_centres(tmp_path):
+    run("simulate", "-o", str(tmp_path), "--frames", "1")
+    camera = json.loads((tmp_path / "camera.json").read_text())
+    camera["calibration"] = {"sigma0_px": 0.03, "centre": "centroid"}  # as calibrate camera writes it
+    (tmp_path / "camera.json").write_text(json.dumps(camera))
+    args = ["measure", "--camera", str(tmp_path / "camera.json"), "--field", str(tmp_path / "field.json")]
+    r = run(*args, str(tmp_path / "frame_0000.png"))
+    assert r.returncode == 0 and json.loads(r.stdout)["ok"], r.stderr
+    assert "warning: the camera was calibrated with centroid centres and measures with edge centres" in r.stderr
+    r = run(*args, "--centre", "centroid", str(tmp_path / "frame_0000.png"))
+    assert r.returncode == 0 and json.loads(r.stdout)["ok"] and "warning" not in r.stderr, r.stderr
+
+
 def test_demo_measures_the_simulated_cell_live():
     r = run("demo", "--frames", "8", "--laps", "1", "--rate-hz", "200")
     assert r.returncode == 0, r.stderr

@@ -224,3 +224,21 @@ def test_a_result_file_says_not_determined_as_null_and_reads_back(tmp_path):
     text = (tmp_path / "camera.json").read_text()
     assert "NaN" not in text and '"rms_px": null' in text
     assert formats.read_camera(tmp_path / "camera.json").c_mm == reference_camera().c_mm
+
+
+def test_a_camera_calibrated_with_the_other_centres_is_warned_of(tmp_path):
+    # what a camera.json says its calibration measured the targets' centres as; the service reports
+    # a mismatch with what it measures with, and says how to mend it
+    said = {**CAMERA, "calibration": {"sigma0_px": 0.014, "centre": "centroid"}}
+    assert formats.calibrated_centre(said) == "centroid"
+    assert formats.calibrated_centre(CAMERA) is None  # older files, observations given: not said
+    assert formats.calibrated_centre({**CAMERA, "calibration": {"centre": "median"}}) is None
+    assert formats.centre_mismatch("centroid", "centroid") is None
+    assert formats.centre_mismatch(None, "edge") is None
+    warning = formats.centre_mismatch("centroid", "edge")
+    assert warning is not None and 'centre = "centroid"' in warning and "calibrate the camera again" in warning
+    state = CalibrationState(Settings(state_dir=tmp_path), CalibrationStore(tmp_path / "calibration"), None)
+    state.update("camera", said)
+    assert state.camera_centre == "centroid"
+    state.update("camera", CAMERA)
+    assert state.camera_centre is None

@@ -198,3 +198,20 @@ print(before, [len(k.signatures) for k in (g.pose_at_kernel, g.flange_kernel)])
     assert out.returncode == 0, out.stderr
     before, after = (json.loads(part) for part in out.stdout.strip().replace("] [", "]|[").split("|"))
     assert before == [0, 0] and min(after) >= 1, out.stdout
+
+
+def test_the_processor_reports_a_camera_calibrated_with_the_other_centres(worker, monkeypatch, caplog):
+    monkeypatch.setattr(processor_module, "FrameMeasurer", lambda camera, field, s: s)
+    worker.update_processing(worker.settings.processing.model_copy(update={"measure_in": "thread"}))
+    worker.calibration.camera, worker.calibration.field = object(), object()
+    worker.calibration.camera_centre = "centroid"  # what the camera's calibration.centre said
+    worker.calibration.generation += 1
+    proc = worker.processors["cam0"]
+    with caplog.at_level("WARNING"):
+        proc.warm_up()
+    report = proc.measurement_report()
+    assert report["centre"] == "edge" and report["camera_calibrated_with"] == "centroid"
+    assert 'centre = "centroid"' in report["warning"] and "cam0" in caplog.text
+    worker.update_processing(worker.settings.processing.model_copy(update={"centre": "centroid"}))
+    proc.warm_up()
+    assert proc.measurement_report()["warning"] is None

@@ -86,7 +86,8 @@ def run(args: argparse.Namespace) -> int:
     from service.pipeline.measure import FrameMeasurer, MeasureSettings
     from service.store import formats
 
-    camera = formats.read_camera(args.camera)
+    camera_data = formats.read_json(args.camera)
+    camera = formats.camera_from_json(camera_data, str(args.camera))
     field = formats.read_field(args.field)
     # the options by the service's [processing] names; None (not given): the defaults, set in one place
     settings = MeasureSettings.from_options(
@@ -101,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
         centre=args.centre,
         correct_eccentricity=not args.no_eccentricity,
     )
+    if warning := formats.centre_mismatch(formats.calibrated_centre(camera_data), settings.detect.centre):
+        print_err(f"posecell measure: warning: {warning}")
     measurer = FrameMeasurer(camera, field, settings)
     failed = 0
     for path in args.images:

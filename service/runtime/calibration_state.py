@@ -67,6 +67,7 @@ class CalibrationState:
         self._lock = threading.Lock()
         self.generation = 0
         self.camera: BrownFraser | None = None
+        self.camera_centre: str | None = None  # what the camera's calibration measured centres as (if said)
         self.field: Field | None = None
         self.handeye: HandEye | None = None
         self.rig: Rig | None = None
@@ -102,11 +103,13 @@ class CalibrationState:
             obj = validate(kind, data)
             if self._store is not None and version is None:
                 version = self._store.put(kind, data, note=f"imported from {source}")
-            self._set(kind, obj, version, source)
+            self._set(kind, obj, version, source, data)
 
-    def _set(self, kind: str, obj: Any, version: int | None, source: str) -> None:
+    def _set(self, kind: str, obj: Any, version: int | None, source: str, data: Any) -> None:
         with self._lock:
             setattr(self, kind, obj)
+            if kind == "camera":
+                self.camera_centre = formats.calibrated_centre(data)
             self.versions[kind] = version
             self.sources[kind] = source
             if kind in MEASURING_KINDS:
@@ -125,7 +128,7 @@ class CalibrationState:
             raise formats.FormatError(f"{kind}.json: {e}") from None
         if kind == "robot":
             self._robot_payload = dict(data)
-        self._set(kind, obj, version, "store" if self._store is not None else "memory")
+        self._set(kind, obj, version, "store" if self._store is not None else "memory", data)
         return version
 
     def payload(self, kind: str) -> Any:

@@ -17,6 +17,7 @@ says why the flange part is missing (``flange_reason``).
 from __future__ import annotations
 
 import contextlib
+import logging
 import threading
 import time
 from collections import deque
@@ -39,6 +40,9 @@ from service.runtime.calibration_state import CalibrationState
 from service.runtime.measure_process import DEPTH, MeasureProcess, Measurer
 from service.runtime.pairing import FramePairer
 from service.settings import CameraConfig, ProcessingConfig, Settings
+from service.store import formats
+
+log = logging.getLogger(__name__)
 
 # significant bits of the pixel formats a camera may deliver (GenICam: unpacked, the low bits)
 BIT_DEPTH = {"Mono8": 8, "Mono10": 10, "Mono12": 12, "Mono14": 14, "Mono16": 16}
@@ -139,14 +143,23 @@ class CameraProcessor:
 
     def measurement_report(self) -> dict[str, Any]:
         """Where this camera's frames are measured: ``process`` (its pid, children replaced) or ``thread``;
-        the frames' bit depth the measurement was set up for (None: the image dtype's); and what a
-        target's centre is measured as (``centroid`` or ``edge``; None before the first set-up)."""
+        the frames' bit depth the measurement was set up for (None: the image dtype's); what a
+        target's centre is measured as (``centroid`` or ``edge``; None before the first set-up), what
+        the camera's calibration measured it as (None: not said), and a warning when they differ."""
         if self._process is None:
             where = {"in": "thread" if self._measurer is not None else None, "pid": None, "restarts": 0}
         else:
             where = {"in": "process", "pid": self._process.pid, "restarts": self._process.restarts}
         centre = self._processing.centre if self._processing is not None else None
-        return {**where, "bit_depth": self._bit_depth, "centre": centre}
+        calibrated = self.calibration.camera_centre
+        warning = None if centre is None else formats.centre_mismatch(calibrated, centre)
+        return {
+            **where,
+            "bit_depth": self._bit_depth,
+            "centre": centre,
+            "camera_calibrated_with": calibrated,
+            "warning": warning,
+        }
 
     @property
     def depth(self) -> int:
@@ -187,6 +200,8 @@ class CameraProcessor:
             or roi != self._roi
         ):
             self._generation, self._processing, self._bit_depth, self._roi = cal.generation, processing, bits, roi
+            if (warning := formats.centre_mismatch(cal.camera_centre, processing.centre)) is not None:
+                log.warning("camera %s: %s", self.name, warning)
             camera = cal.camera
             if camera is not None and roi is not None:
                 # the calibration is the whole sensor's, the frames the window's pixels; a window the

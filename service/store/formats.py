@@ -201,6 +201,26 @@ def read_camera(path: str | os.PathLike[str]) -> BrownFraser:
     return camera_from_json(read_json(path), str(path))
 
 
+def calibrated_centre(camera_data: Any) -> str | None:
+    """What a camera.json's self-calibration measured the targets' centres as ("edge" or "centroid",
+    ``calibration.centre``), None when it does not say (older files, observations given)."""
+    cal = camera_data.get("calibration") if isinstance(camera_data, dict) else None
+    centre = cal.get("centre") if isinstance(cal, dict) else None
+    return centre if centre in ("edge", "centroid") else None
+
+
+def centre_mismatch(calibrated: str | None, measuring: str) -> str | None:
+    """The warning for a camera calibrated with one centre estimator and measuring with the other
+    (their systematic differences on real targets reach hundredths of a pixel); None when they agree
+    or the calibration does not say."""
+    if calibrated is None or calibrated == measuring:
+        return None
+    return (
+        f"the camera was calibrated with {calibrated} centres and measures with {measuring} centres: "
+        f'set centre = "{calibrated}" (--centre {calibrated}) or calibrate the camera again'
+    )
+
+
 def write_camera(path: str | os.PathLike[str], camera: BrownFraser, **extra: Any) -> None:
     d = camera.to_dict()
     d.update(extra)

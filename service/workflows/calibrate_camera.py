@@ -31,6 +31,7 @@ import numpy as np
 from service.core.calib.bundle import BundleResult, Datum, ImagePoints, ScaleBar, calibrate_camera
 from service.core.geometry.camera_model import PARAMETER_NAMES, BrownFraser
 from service.core.results import PoseResult
+from service.core.targets.detect_types import DetectSettings
 from service.core.targets.field import Field
 from service.store import formats
 
@@ -210,9 +211,14 @@ def measure_images(
 # -- outputs ------------------------------------------------------------------------------
 
 
-def camera_json(result: BundleResult) -> dict[str, Any]:
+def camera_json(result: BundleResult, centre: str | None = None) -> dict[str, Any]:
+    """The camera.json of a calibration; ``centre``: what the images' target centres were measured as
+    (``calibration.centre``, so that a measurement with the other estimator is warned; None: the
+    observations came measured)."""
     d = result.camera.to_dict()
     d["calibration"] = result.report()
+    if centre is not None:
+        d["calibration"]["centre"] = centre
     return d
 
 
@@ -388,7 +394,8 @@ def run_camera_calibration(
     if progress is not None:
         progress.close()
     # results say "not determined" as null (a sigma of a target seen once), never as a NaN
-    formats.write_json_atomic(output, formats.null_for_unknown(camera_json(result)))
+    centre = (measure.centre or DetectSettings().centre) if images else None
+    formats.write_json_atomic(output, formats.null_for_unknown(camera_json(result, centre)))
     if field_out:
         formats.write_json_atomic(
             field_out, formats.null_for_unknown(refined_field_json(result, field, f"{field.name}-surveyed"))
