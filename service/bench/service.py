@@ -46,6 +46,7 @@ import orjson
 
 from service.bench.child import health, serve_child, wait_ready
 from service.bench.ws_load import read_streams
+from service.core.targets.detect_types import DetectSettings
 
 RATES_HZ = (100, 250, 500, 1000)
 # where a message's exposure -> WebSocket time goes, from its timings_ms and the probe's arrival
@@ -253,6 +254,7 @@ def run(
     centre: str | None = None,
 ) -> str:
     rows = [measure(r, n, seconds, pose_only=p, centre=centre) for r in rates_hz for n, p in clients]
+    measured_as = centre or DetectSettings().centre  # None: the service's default
     lines = [
         "| camera Hz | clients | results/s | lost | exposure → WS p50 / p99 / max ms "
         "| exposure → commit p99 ms | CPU ms/frame |",
@@ -282,8 +284,8 @@ def run(
     lines += [f"- *{name}*: {what}" for name, what in STAGES]
     lines.append(
         f'\n`posecell serve` in a child process, the replay camera (`source = "sim"`), ROI tracking, '
-        f"{'edge centres' if centre in (None, 'edge') else 'intensity centroids'} "
-        f'(`centre = "{centre or "edge"}"`), every result stored; the probe takes every message with its '
+        f"{'edge centres' if measured_as == 'edge' else 'intensity centroids'} "
+        f'(`centre = "{measured_as}"`), every result stored; the probe takes every message with its '
         f"targets (~15 kB); *pose only*: the other "
         f"clients subscribe with `targets=false` (~2 kB); {seconds:.0f} s per row after a warm-up; "
         f"{os.cpu_count()} cores "

@@ -27,6 +27,7 @@ import numpy as np
 
 from service.core.geometry.camera_model import PARAMETER_NAMES, BrownFraser
 from service.core.pose.intersection import Rig
+from service.core.targets.detect_types import CENTRES
 from service.core.targets.field import Field
 
 
@@ -206,7 +207,7 @@ def calibrated_centre(camera_data: Any) -> str | None:
     ``calibration.centre``), None when it does not say (older files, observations given)."""
     cal = camera_data.get("calibration") if isinstance(camera_data, dict) else None
     centre = cal.get("centre") if isinstance(cal, dict) else None
-    return centre if centre in ("edge", "centroid") else None
+    return centre if centre in CENTRES else None
 
 
 def centre_mismatch(calibrated: str | None, measuring: str) -> str | None:
