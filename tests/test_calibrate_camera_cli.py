@@ -328,7 +328,7 @@ def _camera_file(tmp_path: Path) -> Path:
 PANEL = "micmac-circ-code-target"
 
 
-def test_real_panel_camera_self_calibrates_to_a_thirtieth_of_a_pixel(tmp_path, capsys):
+def test_real_panel_camera_self_calibrates_to_hundredths_of_a_pixel(tmp_path, capsys):
     # MicMac's 20 flash-lit images of the AICON panel (73 coded + 166 uncoded targets, a raised
     # block): a free network on the panel's AICON coordinates, c and the distortion from scratch.
     data = shared_data(PANEL)

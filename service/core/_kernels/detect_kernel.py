@@ -21,12 +21,13 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 
-from service.core._kernels import contour_kernel, crowd_kernel, noise_kernel, warm_images
+from service.core._kernels import contour_kernel, crowd_kernel, edge_kernel, noise_kernel, warm_images
 
 # rows of the float output
 UV, ELLIPSE, FLUX, LEVEL, PEAK, BACKGROUND, SB2, K_SHOT, VAR_BASE, VAR_PER_K = 0, 0, 5, 6, 7, 8, 9, 10, 11, 12
 MISMATCH, NOISE_BG, M3SQ, KURT, KURT_MODEL, FLAT_TOP, VAR_MAJOR, SUMS = 13, 14, 15, 16, 17, 18, 19, 20
-NF = 27
+EDGE_UV, EDGE_SIGMA = 27, 29  # the edge fit's centre (2 rows) and sigma; NaN where not asked or not held
+NF = 30
 
 # reassociation lets the pixel sums vectorise; NaN and inf keep their meaning (no nnan/ninf)
 _FAST = {"reassoc", "contract", "arcp"}
@@ -117,7 +118,7 @@ def _rows(h, w, wi, sums):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
-def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff):
+def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff, edge_fit):
     """Measure the blob in the circle of radius ``half + 1/2`` about each (cu, cv).
 
     Parameters
@@ -129,6 +130,8 @@ def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff):
     full : float, DN -- saturation level
     buf : (K,) float32 -- pixel values replacing the image's in crowded windows (others masked)
     boff : (n,) int -- each window's s*s values' offset into ``buf``, -1: read the image
+    edge_fit : bool -- also fit each disk's half-level edge (:func:`~service.core._kernels.edge_kernel.edge_fit`,
+        on the image) right after its window, while its pixels are in the cache: rows EDGE_UV, EDGE_SIGMA
 
     Returns
     -------
@@ -138,6 +141,7 @@ def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff):
     """
     n = cu.size
     out = np.zeros((NF, n))
+    out[EDGE_UV:] = np.nan
     n_sat = np.zeros(n, dtype=np.intp)
     edge = np.ones(n, dtype=np.bool_)
     hmax = 0
@@ -151,6 +155,8 @@ def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff):
     rb = np.empty(8 * s_max + 8)  # rim values and their du, dv
     ru = np.empty(8 * s_max + 8)
     rv = np.empty(8 * s_max + 8)
+    # a disk held in its window is no wider than it (a wider blob crosses the rim and is rejected)
+    px, py, G, g, core, G0, g0 = edge_kernel.edge_scratch(hmax + 2.0)
     for i in range(n):
         if not placed[i]:
             continue
@@ -167,6 +173,13 @@ def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff):
         else:
             P = buf[o : o + s * s].reshape(s, s)
             n_sat[i], edge[i] = _window(P, 0, 0, img, v0, u0, h, seg[i], full, w, wi, sums, rb, ru, rv, out, i)
+        if edge_fit:
+            e = out[:, i]
+            u, v, sigma = edge_kernel.edge_fit(
+                img, e[0], e[1], e[2], e[3], e[4], e[BACKGROUND], px, py, G, g, core, G0, g0
+            )
+            if sigma == sigma:
+                e[EDGE_UV], e[EDGE_UV + 1], e[EDGE_SIGMA] = u, v, sigma
     return out, n_sat, edge
 
 
@@ -494,12 +507,12 @@ def assess_kernel(out, n_sat, edge, usable, contrast, limits, codes):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def measure_predicted_kernel(img, uv, half, seg, contrast, full, limits, codes):
+def measure_predicted_kernel(img, uv, half, seg, contrast, full, limits, codes, edge_fit):
     """Measure and assess the disk in the window of half size ``half`` (n,) px about each rounded
     prediction ``uv`` (n, 2) px (:func:`service.core.targets.detect.measure_windows`): ``seg`` and
     ``contrast`` DN are every window's segmentation and contrast levels, ``limits`` and ``codes``
-    :func:`assess_kernel`'s. In this module, not beside ROI tracking's other kernels: numba's disk
-    cache of a kernel does not see a change of another module's kernel it calls.
+    :func:`assess_kernel`'s; with ``edge_fit`` a disk's centre (and its ellipse's) and sigma_px are
+    its edge fit's where that holds (:func:`measure_windows_kernel`).
 
     Returns the measurement table (NF, k) of the k accepted disks (their rim not crossed, the
     window inside the image), their sigma_px (k,) and fill (k,), and per window the index of its
@@ -517,7 +530,7 @@ def measure_predicted_kernel(img, uv, half, seg, contrast, full, limits, codes):
         placed[i] = cu[i] >= r and cu[i] + r < width and cv[i] >= r and cv[i] + r < height and r >= 2
     seg_n, contrast_n = np.full(n, seg), np.full(n, contrast)
     out, n_sat, edge = measure_windows_kernel(
-        img, cu, cv, radius, placed, seg_n, full, np.zeros(1, np.float32), np.full(n, -1, dtype=np.intp)
+        img, cu, cv, radius, placed, seg_n, full, np.zeros(1, np.float32), np.full(n, -1, dtype=np.intp), edge_fit
     )
     reason, sigma, fill = assess_kernel(out, n_sat, edge, placed, contrast_n, limits, codes)
     found = np.full(n, -1, dtype=np.intp)
@@ -532,6 +545,8 @@ def measure_predicted_kernel(img, uv, half, seg, contrast, full, limits, codes):
         if j >= 0:
             table[:, j] = out[:, i]
             sigma_ok[j], fill_ok[j] = sigma[i], fill[i]
+            if out[EDGE_SIGMA, i] == out[EDGE_SIGMA, i]:
+                table[UV, j], table[UV + 1, j], sigma_ok[j] = out[EDGE_UV, i], out[EDGE_UV + 1, i], out[EDGE_SIGMA, i]
     return table, sigma_ok, fill_ok, found
 
 
@@ -547,15 +562,17 @@ def warm_up() -> None:
     for img in warm_images((np.uint8, np.uint16)):
         full = float(np.iinfo(img.dtype).max)
         buf = np.full(13 * 13, 200.0, dtype=np.float32)
-        out, n_sat, edge = measure_windows_kernel(
-            img, c, c, half, placed, seg, full, buf, np.array([-1, 0], dtype=np.intp)
-        )
+        for fit in (False, True):
+            out, n_sat, edge = measure_windows_kernel(
+                img, c, c, half, placed, seg, full, buf, np.array([-1, 0], dtype=np.intp), fit
+            )
         crowd_kernel.mask_windows_kernel(img, c, c, half, np.array([0], dtype=np.intp), own, seg)
     limits = np.array([6, 5000, 4, 0.6, 2, 2.5, 0.4, 3, 4, 0.015, 0.05, 1.3, 2.5])
     assess_kernel(out, n_sat, edge, placed, 2 * seg, limits, np.arange(5, dtype=np.intp))
     uv, codes = np.full((2, 2), 16.0), np.arange(5, dtype=np.intp)
     for img in warm_images((np.uint8, np.uint16)):
-        measure_predicted_kernel(img, uv, half, 5.0, 10.0, float(np.iinfo(img.dtype).max), limits, codes)
+        for fit in (False, True):
+            measure_predicted_kernel(img, uv, half, 5.0, 10.0, float(np.iinfo(img.dtype).max), limits, codes, fit)
     contour_kernel.warm_up()
     noise_kernel.warm_up()
     centre, flags = np.array([[1.0, 1.0], [9.0, 1.0]]), np.ones(2, dtype=np.bool_)

@@ -64,7 +64,6 @@ from service.core.targets.detect_windows import (
     blobs_from_table,
     measure_all,
 )
-from service.core.targets.edge_centre import with_edge_centres
 
 # the names callers import from here (the types are defined in detect_types)
 __all__ = ["REASONS", "Blobs", "DetectSettings", "DetectWork", "Rejections", "detect_blobs", "measure_windows"]
@@ -152,7 +151,7 @@ def detect_blobs(
         reason[todo[~fit]] = MISSHAPEN
         todo, radius, own, limited = todo[fit], radius[fit], own[fit], limited[fit]
     tu, tv = ct.box_centre[todo, 0], ct.box_centre[todo, 1]
-    meas, placed = measure_all(img, tu, tv, radius, back.at(back.seg, tu, tv), full, own)
+    meas, placed = measure_all(img, tu, tv, radius, back.at(back.seg, tu, tv), full, own, settings.centre == "edge")
     wr, sigma, fill = assess(meas, placed, settings, np.maximum(contrast, K_PEAK * back.at(back.noise, tu, tv)))
     # a blob reaching the window's rim is bigger than its window, or cut off where the border limits it
     wr = np.where(meas.edge | ~placed, np.where(limited, CUT_OFF, np.where(wr < 0, TOO_BIG, wr)), wr)
@@ -171,8 +170,6 @@ def detect_blobs(
         float(back.tiles.max()),
     )
     blobs = blobs_from(meas, (wr < 0).nonzero()[0], sigma, fill, ringed[todo])
-    if settings.centre == "edge":
-        blobs = with_edge_centres(img, blobs)
     return blobs, Rejections(reason[rej], ct.box[rej], centre[rej], work)
 
 
@@ -220,9 +217,6 @@ def measure_windows(
         seg, contrast = max(seg, K_SEG * noise_dn), max(contrast, K_PEAK * noise_dn)
     # one compiled call (windows, assessment, the accepted ones' rows): ROI tracking's every frame
     table, sigma, fill, found = measure_predicted_kernel(
-        img, uv, half, seg, contrast, full, *assess_constants(settings)
+        img, uv, half, seg, contrast, full, *assess_constants(settings), settings.centre == "edge"
     )
-    blobs = blobs_from_table(table, sigma, fill)
-    if settings.centre == "edge":
-        blobs = with_edge_centres(img, blobs)
-    return blobs, found
+    return blobs_from_table(table, sigma, fill), found

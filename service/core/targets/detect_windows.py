@@ -73,7 +73,8 @@ class Measured:
     the fill's mismatch (sum |blob - ellipse model| / level) and what background noise adds to it
     (px^2), the third central moments' squared norm, the kurtosis along the major axis and the
     blurred ellipse's, the disk's share of the minor-axis variance (the rest is blur), the
-    variance along the major axis, the window's sums (n, 7), saturated pixels, rim crossed."""
+    variance along the major axis, the window's sums (n, 7), the edge fit's centre and sigma
+    (:mod:`~service.core.targets.edge_centre`), saturated pixels, rim crossed."""
 
     uv: Array
     ellipse: Array
@@ -93,6 +94,8 @@ class Measured:
     flat_top: Array
     var_major: Array
     sums: Array
+    edge_uv: Array  # (n, 2) px: the centre fitted to the disk's edge, NaN where not asked or not held
+    edge_sigma: Array
     n_sat: NDArray[np.intp]
     edge: NDArray[np.bool_]
     table: Array  # (NF, n): the kernel's output, whose rows the fields above are
@@ -106,6 +109,7 @@ def measure_all(
     seg_dn: Array,
     full_dn: float,
     own: Array | None,
+    edge_fit: bool = False,
 ) -> tuple[Measured, NDArray[np.bool_]]:
     """Measure the blob in the circle of radius ``radius + 1/2`` px about each (cu, cv), with the
     segmentation level ``seg_dn`` (n,) DN above the background of each window. ``own`` (n, 5):
@@ -113,7 +117,8 @@ def measure_all(
     window centre, NaN where nothing else is near. In those crowded windows, bright pixels outside
     the region and a 3 px band around them (their blur tail) take the rim's lower quartile (the
     rim may cross the other blob): :func:`~service.core._kernels.crowd_kernel.mask_windows_kernel`. The
-    work per window is :func:`~service.core._kernels.detect_kernel.measure_windows_kernel`.
+    work per window is :func:`~service.core._kernels.detect_kernel.measure_windows_kernel`; with
+    ``edge_fit`` it also fits each disk's edge, on the image (unmasked).
 
     Returns the measurements in input order and whether each window fits in the image (the others
     give zeros and a crossed rim).
@@ -140,7 +145,7 @@ def measure_all(
         buf, boff = mask_windows_kernel(img, cu, cv, radius, crowd, np.ascontiguousarray(own, dtype=f64), seg_dn)
     else:
         buf, boff = np.zeros(1, f32), np.full(cu.size, -1, dtype=np.intp)
-    out, n_sat, edge = measure_windows_kernel(img, cu, cv, radius, placed, seg_dn, float(full_dn), buf, boff)
+    out, n_sat, edge = measure_windows_kernel(img, cu, cv, radius, placed, seg_dn, float(full_dn), buf, boff, edge_fit)
     K = detect_kernel
     return Measured(
         uv=out[K.UV : K.UV + 2].T,
@@ -161,6 +166,8 @@ def measure_all(
         flat_top=out[K.FLAT_TOP],
         var_major=out[K.VAR_MAJOR],
         sums=out[K.SUMS : K.SUMS + 7].T,
+        edge_uv=out[K.EDGE_UV : K.EDGE_UV + 2].T,
+        edge_sigma=out[K.EDGE_SIGMA],
         n_sat=n_sat,
         edge=edge,
         table=out,
@@ -215,11 +222,16 @@ def assess_constants(settings: DetectSettings) -> tuple[Array, NDArray[np.intp]]
 def blobs_from(
     meas: Measured, index: NDArray[np.intp], sigma: Array, fill: Array, has_ring: NDArray[np.bool_] | None = None
 ) -> Blobs:
-    """The windows at ``index`` as :class:`Blobs`, with their ``sigma`` and ``fill`` from :func:`assess`."""
+    """The windows at ``index`` as :class:`Blobs`, with their ``sigma`` and ``fill`` from :func:`assess`;
+    the centre (the ellipse's too) and sigma are the edge fit's where it was asked for and held."""
+    held = np.isfinite(meas.edge_sigma[index])
+    uv = np.where(held[:, None], meas.edge_uv[index], meas.uv[index])
+    ellipse = meas.ellipse[index]
+    ellipse[:, :2] = uv
     return Blobs(
-        uv=meas.uv[index],
-        ellipse=meas.ellipse[index],
-        sigma_px=sigma[index],
+        uv=uv,
+        ellipse=ellipse,
+        sigma_px=np.where(held, meas.edge_sigma[index], sigma[index]),
         area_px=meas.flux[index] / meas.level[index],
         peak_dn=meas.peak[index],
         background_dn=meas.background[index],
@@ -230,7 +242,7 @@ def blobs_from(
 
 def blobs_from_table(table: Array, sigma: Array, fill: Array) -> Blobs:
     """The accepted windows as :class:`Blobs`: their rows (NF, k) of the measurement table (views of
-    it, no copies), with their ``sigma`` and ``fill``
+    it, no copies; the centres already the edge fit's where asked for), with their ``sigma`` and ``fill``
     (:func:`~service.core._kernels.roi_kernel.measure_predicted_kernel`)."""
     K = detect_kernel
     return Blobs(

@@ -6,7 +6,9 @@ flash has a gradient and a texture across the disk, a printed dot an uneven ink,
 follows them. The half-level edge does not. :func:`edge_centres` fits a conic to the points where
 the disk's rows and columns cross the half level between its background and its core
 (:mod:`service.core._kernels.edge_kernel`); a fit on too few points or far from the centroid is not
-used, and the centroid stays.
+used, and the centroid stays. The detector fits each disk right after measuring its window
+(:func:`~service.core._kernels.detect_kernel.measure_windows_kernel`), while its pixels are cached;
+:func:`edge_centres` fits given disks.
 
 Measured (``posecell calibrate camera`` on MicMac's real coded panel, 20 images, 3359
 observations): self-calibration sigma0 0.029 px with centroids, 0.014 px with edge centres, and a
@@ -18,13 +20,10 @@ observations. On rendered frames (truth known) as precise as the centroid or mor
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 from numpy.typing import NDArray
 
 from service.core._kernels.edge_kernel import edge_centres_kernel
-from service.core.targets.detect_types import Blobs
 
 Array = NDArray[np.float64]
 
@@ -47,19 +46,3 @@ def edge_centres(
         c(np.reshape(background_dn, (-1,)), dtype=np.float64),
     )
     return uv_out, sigma, ok
-
-
-def with_edge_centres(image: NDArray[np.generic], blobs: Blobs) -> Blobs:
-    """``blobs`` with their centres (``uv``, the ellipses' centres) and ``sigma_px`` from
-    :func:`edge_centres`, where the edge fit holds."""
-    if len(blobs) == 0:
-        return blobs
-    uv, sigma, ok = edge_centres(image, blobs.uv, blobs.ellipse, blobs.background_dn)
-    ellipse = blobs.ellipse.copy()
-    ellipse[ok, :2] = uv[ok]
-    return replace(
-        blobs,
-        uv=np.where(ok[:, None], uv, blobs.uv),
-        ellipse=ellipse,
-        sigma_px=np.where(ok, sigma, blobs.sigma_px),
-    )

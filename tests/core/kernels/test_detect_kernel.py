@@ -22,6 +22,7 @@ from scipy.special import roots_legendre
 
 from service.core._kernels import detect_kernel as K
 from service.core._kernels.detect_kernel import assess_kernel, measure_predicted_kernel, measure_windows_kernel
+from service.core._kernels.edge_kernel import edge_centres_kernel
 from service.core.targets.detect_types import DetectSettings
 from service.core.targets.detect_windows import assess, assess_constants, measure_all
 
@@ -103,6 +104,7 @@ def _measure_reference(P, img_win, h, seg, full):
     a0, c2, c4, c22 = circle.sum(), np.sum(du[circle] ** 2), np.sum(du[circle] ** 4), np.sum((du * dv)[circle] ** 2)
     sums = [a0, c2, c4, c22, np.sum(du[circle] ** 6), np.sum((du**4 * dv**2)[circle]), np.sum(du[circle] ** 8)]
     row = np.zeros(K.NF)
+    row[K.EDGE_UV :] = np.nan  # the edge fit, not asked for (its own reference: test_edge_kernel)
     row[0:5] = [uc, vc, a, b, angle]
     row[K.FLUX], row[K.LEVEL], row[K.PEAK] = S, level, peak
     row[K.BACKGROUND], row[K.SB2] = b0 + b1 * uc + b2 * vc, sb2
@@ -156,11 +158,11 @@ def test_measured_windows_are_the_numpy_measurement(rng, dtype):
         parts.append((window.astype(np.float32) * np.float32(0.97)).ravel())
         boff[i], total = total, total + s * s
     buf = np.concatenate(parts)
-    out, n_sat, edge = measure_windows_kernel(img, cu, cv, half, placed, seg, float(full), buf, boff)
+    out, n_sat, edge = measure_windows_kernel(img, cu, cv, half, placed, seg, float(full), buf, boff, False)
     assert out.shape == (K.NF, n)
     for i in range(n):
         if not placed[i]:  # zeros and a crossed rim
-            assert np.all(out[:, i] == 0) and n_sat[i] == 0 and edge[i]
+            assert np.all(out[: K.EDGE_UV, i] == 0) and n_sat[i] == 0 and edge[i]
             continue
         h = half[i]
         img_win = img[cv[i] - h : cv[i] + h + 1, cu[i] - h : cu[i] + h + 1]
@@ -182,9 +184,23 @@ def test_measured_windows_are_the_numpy_measurement(rng, dtype):
         # less sb2, ~1 DN/DN) cancels to 3e-9 relative, 1e-12 absolute
         np.testing.assert_allclose(got, ref, rtol=1e-11, atol=1e-9, err_msg=f"window {i}")
     assert n_sat[0] > 0 and edge.sum() > (~placed).sum()  # saturation and crossed rims were met
+    # with the edge fit: the same measurement, and each placed window's edge centre is the edge
+    # kernel's from its centroid and ellipse, on the image (not the masked buffer)
+    with_fit = measure_windows_kernel(img, cu, cv, half, placed, seg, float(full), buf, boff, True)
+    np.testing.assert_array_equal(with_fit[0][: K.EDGE_UV], out[: K.EDGE_UV])
+    np.testing.assert_array_equal(with_fit[1], n_sat)
+    np.testing.assert_array_equal(with_fit[2], edge)
+    e = with_fit[0][:, placed]
+    uv_ref, sigma_ref, ok = edge_centres_kernel(img, e[:2].T.copy(), e[:5].T.copy(), e[K.BACKGROUND].copy())
+    assert 0.5 * placed.sum() < ok.sum() < placed.sum()  # fits held, and some did not
+    np.testing.assert_array_equal(e[K.EDGE_SIGMA], sigma_ref)
+    np.testing.assert_array_equal(e[K.EDGE_UV : K.EDGE_UV + 2][:, ok], uv_ref[ok].T)
+    assert np.all(np.isnan(e[K.EDGE_UV : K.EDGE_UV + 2][:, ~ok])) and np.all(
+        np.isnan(with_fit[0][K.EDGE_UV :, ~placed])
+    )
     # no windows at all
     empty = measure_windows_kernel(
-        img, *(np.zeros(0, np.intp),) * 3, np.zeros(0, bool), np.zeros(0), 255.0, buf, np.zeros(0, np.intp)
+        img, *(np.zeros(0, np.intp),) * 3, np.zeros(0, bool), np.zeros(0), 255.0, buf, np.zeros(0, np.intp), True
     )
     assert empty[0].shape == (K.NF, 0) and empty[1].shape == empty[2].shape == (0,)
 
@@ -262,7 +278,7 @@ def test_assessment_is_the_numpy_decision(rng):
     placed = (cu >= half) & (cu + half < 500) & (cv >= half) & (cv + half < 400)
     seg = np.full(n, 0.03 * full)
     buf, boff = np.zeros(1, np.float32), np.full(n, -1, dtype=np.intp)
-    out, n_sat, edge = measure_windows_kernel(img, cu, cv, half, placed, seg, float(full), buf, boff)
+    out, n_sat, edge = measure_windows_kernel(img, cu, cv, half, placed, seg, float(full), buf, boff, False)
     limits, codes = assess_constants(DetectSettings())
     contrast = np.full(n, 0.08 * full)
     usable = placed & (rng.random(n) < 0.9)
@@ -284,10 +300,12 @@ def test_assessment_is_the_numpy_decision(rng):
     assert all(x.shape == (0,) for x in empty)
 
 
+@pytest.mark.parametrize("edge_fit", [False, True])
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
-def test_predicted_windows_are_measured_and_assessed_as_the_numpy_path_does(rng, dtype):
+def test_predicted_windows_are_measured_and_assessed_as_the_numpy_path_does(rng, dtype, edge_fit):
     """The one call of ROI tracking against measure_all + assess + the selection of accepted
-    windows (what measure_windows did in numpy): the same disks, rows, sigma, fill and indices."""
+    windows (what measure_windows did in numpy): the same disks, rows, sigma, fill and indices;
+    with the edge fit, the centres and sigma are the edge fit's where it held."""
     img, full, centres, radii = _scene(rng, dtype)
     n = len(centres)
     uv = centres + rng.uniform(-1.5, 1.5, (n, 2))
@@ -299,12 +317,19 @@ def test_predicted_windows_are_measured_and_assessed_as_the_numpy_path_does(rng,
     limits, codes = assess_constants(DetectSettings())
     frozen = img.view()
     frozen.flags.writeable = False  # a replayed frame is read-only: the same measurement
-    table, sigma, fill, found = measure_predicted_kernel(frozen, uv, half, seg, contrast, float(full), limits, codes)
+    table, sigma, fill, found = measure_predicted_kernel(
+        frozen, uv, half, seg, contrast, float(full), limits, codes, edge_fit
+    )
 
     finite = np.isfinite(uv).all(axis=1)
     c = np.rint(np.where(finite[:, None], uv, -1e6)).astype(np.intp).T.copy()
-    meas, placed = measure_all(img, c[0], c[1], np.where(finite, half, 0), np.full(n, seg), full, None)
+    meas, placed = measure_all(img, c[0], c[1], np.where(finite, half, 0), np.full(n, seg), full, None, edge_fit)
     reason, sigma_ref, fill_ref = assess(meas, placed, DetectSettings(), np.full(n, contrast))
+    if edge_fit:  # the edge fit's centre and sigma where it held (blobs_from's choice)
+        held = np.isfinite(meas.edge_sigma)
+        assert held.sum() > n // 2
+        meas.table[: K.UV + 2, held] = meas.edge_uv[held].T
+        sigma_ref = np.where(held, meas.edge_sigma, sigma_ref)
     ok = ((reason < 0) & ~meas.edge & placed).nonzero()[0]
     assert 0 < ok.size < n - 3 and not placed[:2].any() and found[2] == -1  # accepted, refused, outside
     np.testing.assert_array_equal(found[ok], np.arange(ok.size))
