@@ -25,7 +25,6 @@ from numpy.typing import NDArray
 
 from service.core._kernels import (
     detect_kernel,
-    edge_kernel,
     geometry_kernels,
     json_kernel,
     resection_kernel,
@@ -349,8 +348,6 @@ class FrameMeasurer:
         resection_kernel.warm_up()
         roi_kernel.warm_up()
         json_kernel.warm_up()  # the measurement process encodes the targets
-        if self.settings.detect.centre == "edge":
-            edge_kernel.warm_up()
         decode_warm_up()
         self._radius_mm = (
             np.where(np.isfinite(field.diameters_mm), field.diameters_mm, np.where(field.is_coded, 10.0, 6.0)) / 2.0
