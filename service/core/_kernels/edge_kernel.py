@@ -5,9 +5,12 @@ background and its core (linear interpolation between the two pixels either side
 row or column crosses the edge steeply (within 0.75 of the disk's half extent from its centre
 across them); a direct least-squares conic through those points gives the centre. Pixels, not
 bilinear samples along rays (the code reader's re-fit, :func:`~service.core._kernels.decode_kernel._refine`):
-as precise on rendered and real images and ~9x cheaper (~0.8 us a target of the reference scene in a
-tight loop, ~1.1 us in an ROI frame, whose pixels the windows have just read).
+as precise on rendered and real images and ~9x cheaper (~0.6-0.9 us a disk of the reference scene).
 The blur moves a curved edge inwards point-symmetrically, which leaves the centre where it is.
+
+:func:`edge_fit` fits one disk; the window kernel
+(:func:`~service.core._kernels.detect_kernel.measure_windows_kernel`) calls it right after each
+window, :func:`edge_centres_kernel` for disks given (:func:`service.core.targets.edge_centre.edge_centres`).
 """
 
 from __future__ import annotations
