@@ -14,8 +14,9 @@ venv="$repo/.venv"
 # python3-gi + gir1.2-aravis-0.8: the Aravis GigE Vision driver and its loopback stand-in camera;
 # chromium + fonts-liberation: the dashboard's test in a real headless browser; systemd: the unit's check.
 # mosquitto: the MQTT broker that the plant tests (tests/plant/) start on a loopback port of their own.
+# libcairo2: cairo, which rasterises the printed target sheet for images posecell did not make (CairoSVG).
 apt_packages=(python3 python3-venv python3-dev gcc python3-gi gir1.2-aravis-0.8 chromium fonts-liberation systemd
-    mosquitto)
+    mosquitto libcairo2)
 
 as_root() {
     if [ "$(id -u)" -eq 0 ]; then "$@"; else sudo "$@"; fi

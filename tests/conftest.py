@@ -42,6 +42,7 @@ SLOW_MODULES = (
     "tests/test_real_panel.py",
     "tests/test_dbat_reference.py",
     "tests/test_dbat_images.py",
+    "tests/test_independent_images.py",
 )
 
 

@@ -171,6 +171,20 @@ def test_bench_speed_reports_every_condition_of_the_matrix_beside_the_peer():
             assert len(cells) == 12 and all(c != "nan" for c in (cells[0], cells[1], cells[7], cells[10])), line
 
 
+def test_bench_independent_measures_the_sheet_imaged_by_cairo_and_opencv_beside_the_peer():
+    from service.bench.independent import VIEWS
+
+    r = run("bench", "independent", "--sheet-frames", "1")
+    assert r.returncode == 0, r.stderr
+    rows = {line.split("|")[1].strip(): line for line in r.stdout.splitlines() if line.startswith("| ")}
+    for view in VIEWS:
+        cells = [c.strip() for c in rows[view.name].split("|")[2:-1]]
+        assert len(cells) == 13, rows[view.name]
+        named, in_view = (int(x) for x in cells[1].split(" / "))
+        assert named >= 0.95 * in_view > 0 and cells[3] == "0" and cells[7] == "0", rows[view.name]  # none misnamed
+        assert float(cells[5]) < 0.1 and float(cells[11]) < 1.0, rows[view.name]  # pose errors, ours and the peer's
+
+
 def test_bench_host_times_roi_frames_alone_and_beside_each_neighbour_and_leaves_none_running():
     import os
 

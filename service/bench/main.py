@@ -50,6 +50,12 @@ def _real(args: argparse.Namespace) -> str:
     return bench_real.run(data=args.data, camera=args.camera)
 
 
+def _independent(args: argparse.Namespace) -> str:
+    from service.bench import independent as bench_independent
+
+    return bench_independent.run(n_frames=args.sheet_frames, seed=args.seed)
+
+
 SECTIONS: dict[str, Callable[[argparse.Namespace], str]] = {
     "accuracy": _accuracy,
     "speed": _speed,
@@ -57,6 +63,7 @@ SECTIONS: dict[str, Callable[[argparse.Namespace], str]] = {
     "service": _service,
     "host": _host,
     "real": _real,
+    "independent": _independent,
 }
 
 

@@ -19,7 +19,7 @@ def add_parser(subparsers: Subparsers) -> None:
         "sections",
         nargs="*",
         default=[],
-        help="sections to run (default: all): accuracy, speed, faults, service, host, real",
+        help="sections to run (default: all): accuracy, speed, faults, service, host, real, independent",
     )
     b.add_argument(
         "--frames",
@@ -32,6 +32,12 @@ def add_parser(subparsers: Subparsers) -> None:
         type=int,
         default=30,
         help="frames per row of the speed section's condition matrix (0: leave it out)",
+    )
+    b.add_argument(
+        "--sheet-frames",
+        type=int,
+        default=5,
+        help="frames per row of the independent section (the printed sheet imaged by cairo and OpenCV)",
     )
     b.add_argument("--trials", type=int, default=500, help="Monte-Carlo trials for the accuracy tables")
     b.add_argument("--seed", type=int, default=1)
