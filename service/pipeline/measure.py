@@ -31,6 +31,7 @@ from service.core._kernels import (
     roi_kernel,
 )
 from service.core.geometry.camera_model import BrownFraser
+from service.core.geometry.frames import inv_T
 from service.core.pose.resection import ResectionResult, resect
 from service.core.pose.tracking import PoseSample, predict_pose
 from service.core.results import Failure, PoseResult, Reason, SolveError, TargetTable
@@ -355,6 +356,7 @@ class FrameMeasurer:
         # per field row, for the compiled window sizes
         self._radius_c = self._radius_mm * camera.c_mm
         self._coded = np.ascontiguousarray(field.codes >= 0)
+        self._f_px = float(camera.c_mm / camera.mean_pixel_size_mm)  # the ring masks' pinhole
 
     def reset(self) -> None:
         """Forget the pose history: the next frame is measured in full."""
@@ -532,7 +534,7 @@ class FrameMeasurer:
             # with a velocity the prediction is usually far better than the allowance: measure every
             # target in tight windows right away, and keep that only if each disk lies as close to
             # its window's centre as the tight windows are made for (else: two stages, below)
-            measured = self._measure_targets(image, rows, uv_pred, depth, TIGHT_SLACK, check_centred=True)
+            measured = self._measure_targets(image, T_pred, rows, uv_pred, depth, TIGHT_SLACK, check_centred=True)
         if measured is None and s.roi_refine:
             # stage 1: locate the uncoded targets in generous windows and re-solve the pose, so
             # that stage 2 can measure every target (coded ones too, whose windows must stay
@@ -556,7 +558,7 @@ class FrameMeasurer:
             rows, uv_pred, depth = project_field(self.camera, self.field, T_pred, margin_px=4.0, with_depth=True)
             slack = TIGHT_SLACK
         if measured is None:
-            measured = self._measure_targets(image, rows, uv_pred, depth, slack)
+            measured = self._measure_targets(image, T_pred, rows, uv_pred, depth, slack)
         clock.lap("windows")
         if measured is None:
             return None
@@ -573,6 +575,7 @@ class FrameMeasurer:
     def _measure_targets(
         self,
         image: NDArray[np.generic],
+        T_pred: Array,
         rows: NDArray[np.int64],
         uv_pred: Array,
         depth: Array,
@@ -582,11 +585,23 @@ class FrameMeasurer:
         """Field rows and measured pixels (N, 2) of the targets found in windows about their
         predictions, and the disks measured; None when too few are found or, with
         ``check_centred``, when a disk lies further from its window's centre than ``slack`` times
-        the prediction allowance."""
+        the prediction allowance. A coded target's ring is masked in its window (in an oblique view it
+        comes within the window of its disk): its own region is its disk predicted by ``T_pred``."""
         s = self.settings
         half = self._window_half_size(rows, depth, slack)
+        T_camera_field = inv_T(T_pred)
+        own = roi_kernel.ring_masks_kernel(
+            np.ascontiguousarray(T_camera_field[:3, :3]),
+            np.ascontiguousarray(T_camera_field[:3, 3]),
+            self.field.xyz,
+            self._radius_mm,
+            self._coded,
+            rows,
+            uv_pred,
+            self._f_px,
+        )
         try:
-            blobs, found = measure_windows(image, uv_pred, half, self._roi_detect)
+            blobs, found = measure_windows(image, uv_pred, half, self._roi_detect, own)
         except (ValueError, SolveError):
             return None
         # compiled: as array expressions the gathering and the check were 2 % of an ROI frame
@@ -600,13 +615,12 @@ class FrameMeasurer:
     def _window_half_size(self, rows: NDArray[np.int64], depth: Array, slack: float = 1.0) -> NDArray[np.int64]:
         """Half window (px) per target at ``depth`` (mm): the disk's image radius, the blur, and the prediction error.
 
-        A coded target's window stays inside its dark gap (the ring starts at 2 R; the
-        square window's corners and the blur need the margin).
+        A coded target's ring may reach into its window in an oblique view: it is masked
+        (:meth:`_measure_targets`).
         """
         # compiled: as array expressions they were 2 % of an ROI frame
         return roi_kernel.window_half_size_kernel(
             self._radius_c,
-            self._coded,
             rows,
             depth,
             float(self.camera.mean_pixel_size_mm),

@@ -277,7 +277,7 @@ def test_measure_windows_reports_empty_off_target_and_outside_windows(reference)
             p,  # a good prediction
             p + np.array([36.0, 0.0]),  # half-way to the next target: nothing there
             p + np.array([5.0, 0.0]),  # off by 5 px: the disk reaches the window's edge
-            [3.0, 500.0],  # the window leaves the image
+            [3.0, 500.0],  # at the border: a window as large as the image allows (3 px), nothing in it
             [np.nan, np.nan],  # no prediction
         ]
     )
@@ -285,6 +285,32 @@ def test_measure_windows_reports_empty_off_target_and_outside_windows(reference)
     assert index.tolist() == [0, -1, -1, -1, -1]
     assert len(measured) == 1
     np.testing.assert_allclose(measured.uv[0], blobs.uv[match(blobs, p[None])[0]], atol=0.05)
+
+
+def test_windows_at_the_image_border_measure_whole_disks_and_refuse_cut_ones():
+    """A window that would leave the image is made as large as the image allows: a whole disk near the
+    border is measured (as in the full frame), one the border cuts crosses its rim and is refused."""
+    frame = render(pose=reference_pose(distance_mm=900.0))  # the plate overfills the image
+    blobs, _ = detect_blobs(frame.image)
+    uncoded = np.array([i.startswith("P") for i in frame.ids])
+    h, w = frame.image.shape
+    uv = frame.uv_disk_centroid
+    gap = np.minimum.reduce([uv[:, 0], w - 1 - uv[:, 0], uv[:, 1], h - 1 - uv[:, 1]])
+    half = 10  # disk radius (~6 px here) + blur + the prediction error
+    near = uncoded & frame.fully_visible & (gap < half - 0.5) & (gap > -0.5)  # the full window leaves the image
+    cut = uncoded & ~frame.fully_visible & (gap > -0.5)
+    assert near.sum() >= 5 and cut.sum() >= 10, (near.sum(), cut.sum())
+    measured, index = measure_windows(frame.image, uv[near | cut], half)
+    at_border, cut_off = index[near[near | cut]], index[cut[near | cut]]
+    assert np.all(cut_off == -1), cut_off
+    # every one the full frame measures (the others lie within ~7 px of the border, too near for its
+    # windows too) is measured, where the window's full size would have left the image
+    ref = match(blobs, uv[near])
+    ok = ref >= 0
+    assert ok.sum() >= 2 and np.all(at_border[ok] >= 0), (at_border, ref)
+    ref = ref[ok]
+    d = measured.uv[at_border[ok]] - blobs.uv[ref]
+    assert np.all(np.abs(d) < 4 * blobs.sigma_px[ref, None] + 0.01), d
 
 
 def test_not_an_image_is_bad_input():

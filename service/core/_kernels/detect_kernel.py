@@ -507,12 +507,14 @@ def assess_kernel(out, n_sat, edge, usable, contrast, limits, codes):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def measure_predicted_kernel(img, uv, half, seg, contrast, full, limits, codes, edge_fit):
+def measure_predicted_kernel(img, uv, half, seg, contrast, full, limits, codes, edge_fit, own):
     """Measure and assess the disk in the window of half size ``half`` (n,) px about each rounded
     prediction ``uv`` (n, 2) px (:func:`service.core.targets.detect.measure_windows`): ``seg`` and
     ``contrast`` DN are every window's segmentation and contrast levels, ``limits`` and ``codes``
     :func:`assess_kernel`'s; with ``edge_fit`` a disk's centre (and its ellipse's) and sigma_px are
-    its edge fit's where that holds (:func:`measure_windows_kernel`).
+    its edge fit's where that holds (:func:`measure_windows_kernel`). ``own`` (n, 5): a window's own
+    region where other bright things (a coded target's ring) are masked
+    (:func:`~service.core._kernels.crowd_kernel.mask_windows_kernel`), NaN rows for the others.
 
     Returns the measurement table (NF, k) of the k accepted disks (their rim not crossed, the
     window inside the image), their sigma_px (k,) and fill (k,), and per window the index of its
@@ -526,12 +528,23 @@ def measure_predicted_kernel(img, uv, half, seg, contrast, full, limits, codes, 
             cu[i], cv[i], radius[i] = int(np.rint(uv[i, 0])), int(np.rint(uv[i, 1])), half[i]
         else:  # far outside, as the numpy path puts it
             cu[i] = cv[i] = -1000000
-        r = radius[i]
-        placed[i] = cu[i] >= r and cu[i] + r < width and cv[i] >= r and cv[i] + r < height and r >= 2
+        # a window at the image border is made as large as the image allows: a disk that no longer
+        # fits (or lies partly outside) crosses its rim and is refused below, as an off prediction is
+        r = min(radius[i], cu[i], width - 1 - cu[i], cv[i], height - 1 - cv[i])
+        radius[i] = max(r, 0)
+        placed[i] = r >= 2
     seg_n, contrast_n = np.full(n, seg), np.full(n, contrast)
-    out, n_sat, edge = measure_windows_kernel(
-        img, cu, cv, radius, placed, seg_n, full, np.zeros(1, np.float32), np.full(n, -1, dtype=np.intp), edge_fit
-    )
+    k = 0
+    for i in range(n):
+        k += placed[i] and own[i, 0] == own[i, 0]
+    masked = np.empty(k, dtype=np.intp)
+    k = 0
+    for i in range(n):
+        if placed[i] and own[i, 0] == own[i, 0]:
+            masked[k] = i
+            k += 1
+    buf, boff = crowd_kernel.mask_windows_kernel(img, cu, cv, radius, masked, own, seg_n)
+    out, n_sat, edge = measure_windows_kernel(img, cu, cv, radius, placed, seg_n, full, buf, boff, edge_fit)
     reason, sigma, fill = assess_kernel(out, n_sat, edge, placed, contrast_n, limits, codes)
     found = np.full(n, -1, dtype=np.intp)
     k = 0
@@ -572,7 +585,10 @@ def warm_up() -> None:
     uv, codes = np.full((2, 2), 16.0), np.arange(5, dtype=np.intp)
     for img in warm_images((np.uint8, np.uint16)):
         for fit in (False, True):
-            measure_predicted_kernel(img, uv, half, 5.0, 10.0, float(np.iinfo(img.dtype).max), limits, codes, fit)
+            for masks in (np.full((2, 5), np.nan), np.array([[0.0, 0.0, 0.1, 0.0, 0.1], [np.nan] * 5])):
+                measure_predicted_kernel(
+                    img, uv, half, 5.0, 10.0, float(np.iinfo(img.dtype).max), limits, codes, fit, masks
+                )
     contour_kernel.warm_up()
     noise_kernel.warm_up()
     centre, flags = np.array([[1.0, 1.0], [9.0, 1.0]]), np.ones(2, dtype=np.bool_)

@@ -16,20 +16,61 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def window_half_size_kernel(radius_c, coded, rows, depth, pixel_mm, allowance_px):
+def window_half_size_kernel(radius_c, rows, depth, pixel_mm, allowance_px):
     """Half window (n,) px per target ``rows`` (n,) of the field at ``depth`` (n,) mm: the disk's image
     radius ``radius_c / max(depth, 1) / pixel_mm`` (``radius_c``: radius mm times c mm, per field row),
-    3 px of blur and ``allowance_px`` for the prediction error; a ``coded`` (per field row) target's
-    window ends 4 px inside its ring (which starts at twice the disk's radius); at least 3 px."""
+    3 px of blur and ``allowance_px`` for the prediction error; at least 3 px. A coded target's ring
+    may reach into it: :func:`ring_masks_kernel` keeps it out."""
     n = rows.size
     half = np.empty(n, dtype=np.int64)
     for i in range(n):
         r_px = radius_c[rows[i]] / max(depth[i], 1.0) / pixel_mm
-        h = np.ceil(r_px + 3.0 + allowance_px)
-        if coded[rows[i]]:
-            h = min(h, np.floor(2.0 * r_px - 4.0))
-        half[i] = int(max(h, 3.0))
+        half[i] = int(max(np.ceil(r_px + 3.0 + allowance_px), 3.0))
     return half
+
+
+# A coded target's own region in its window: its disk's predicted ellipse grown to the middle of the
+# dark gap between the disk (1 radius) and the ring (2 radii); the ring outside it is masked
+OWN_RADII = 1.5
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def ring_masks_kernel(R_cf, t_cf, xyz, radius_mm, coded, rows, uv_pred, f_px):
+    """Per target ``rows`` (n,) of the field, the own region (n, 5) ``(x0, y0, Q_uu, Q_uv, Q_vv)``
+    that :func:`~service.core._kernels.crowd_kernel.mask_windows_kernel` keeps of its window: for a
+    ``coded`` (per field row) one, its disk's ellipse predicted by the pose ``R_cf``, ``t_cf``
+    (camera from field, mm) and grown to OWN_RADII disk radii, about the prediction ``uv_pred``
+    (n, 2) px less the window's centre (the rounded prediction); NaN rows for the others. The
+    ellipse is the projection's first-order (affine) image of the disk (radius ``radius_mm`` per
+    field row, in the field's x-y plane) through a pinhole of ``f_px`` px; the lens's distortion
+    changes it by far less than the gap it has to fit in. In an oblique view the ring comes within
+    twice the disk's foreshortened radius of its centre, inside any window that holds the disk."""
+    n = rows.size
+    own = np.full((n, 5), np.nan)
+    for i in range(n):
+        j = rows[i]
+        if not coded[j]:
+            continue
+        X = R_cf[0, 0] * xyz[j, 0] + R_cf[0, 1] * xyz[j, 1] + R_cf[0, 2] * xyz[j, 2] + t_cf[0]
+        Y = R_cf[1, 0] * xyz[j, 0] + R_cf[1, 1] * xyz[j, 1] + R_cf[1, 2] * xyz[j, 2] + t_cf[1]
+        Z = R_cf[2, 0] * xyz[j, 0] + R_cf[2, 1] * xyz[j, 1] + R_cf[2, 2] * xyz[j, 2] + t_cf[2]
+        if not Z > 0:
+            continue
+        x, y, g = X / Z, Y / Z, f_px / Z * radius_mm[j] * OWN_RADII
+        # the image of the disk's in-plane axes (field x and y), px: A maps the unit circle onto it
+        a00, a01 = g * (R_cf[0, 0] - x * R_cf[2, 0]), g * (R_cf[0, 1] - x * R_cf[2, 1])
+        a10, a11 = g * (R_cf[1, 0] - y * R_cf[2, 0]), g * (R_cf[1, 1] - y * R_cf[2, 1])
+        # x' (A A')^-1 x <= 1: (A A')^-1 = (A^-1)' A^-1
+        det = a00 * a11 - a01 * a10
+        if not abs(det) > 1e-12:
+            continue
+        b00, b01, b10, b11 = a11 / det, -a01 / det, -a10 / det, a00 / det  # A^-1
+        own[i, 0] = uv_pred[i, 0] - np.rint(uv_pred[i, 0])
+        own[i, 1] = uv_pred[i, 1] - np.rint(uv_pred[i, 1])
+        own[i, 2] = b00 * b00 + b10 * b10
+        own[i, 3] = b00 * b01 + b10 * b11
+        own[i, 4] = b01 * b01 + b11 * b11
+    return own
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -62,7 +103,17 @@ def gather_found_kernel(found, blob_uv, rows, uv_pred):
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels for the types the pipeline passes."""
     rows = np.arange(3, dtype=np.int64)
-    window_half_size_kernel(np.full(3, 60.0), np.zeros(3, dtype=np.bool_), rows, np.full(3, 1000.0), 0.0067, 1.0)
+    window_half_size_kernel(np.full(3, 60.0), rows, np.full(3, 1000.0), 0.0067, 1.0)
+    ring_masks_kernel(
+        np.eye(3),
+        np.array([0.0, 0.0, 1000.0]),
+        np.zeros((3, 3)),
+        np.full(3, 5.0),
+        np.ones(3, dtype=np.bool_),
+        rows,
+        np.zeros((3, 2)),
+        1800.0,
+    )
     # the disks' pixels come as a view of measure_predicted_kernel's table, (2, k) transposed, or
     # (edge centres, the default) as an array of their own
     found = np.array([0, -1, 1], dtype=np.int64)

@@ -178,6 +178,7 @@ def measure_windows(
     uv_predicted: NDArray[np.float64],
     half_size_px: int | NDArray[np.intp],
     settings: DetectSettings = _DEFAULTS,
+    own: NDArray[np.float64] | None = None,
 ) -> tuple[Blobs, NDArray[np.intp]]:
     """Measure the one bright disk in a small window around each predicted position.
 
@@ -195,6 +196,11 @@ def measure_windows(
         ``window_px``, ``border_px`` and ``max_candidates`` are not used. With ``noise_dn`` (e.g.
         the last full frame's), the segmentation and contrast levels follow it as in
         :func:`detect_blobs`; without, they are ``min_contrast_dn``'s alone.
+    own : (M, 5) float, optional
+        Per window, the disk's own region ``(x0, y0, Q_uu, Q_uv, Q_vv)``: ``x' Q x <= 1`` about
+        (x0, y0) px from the window's centre; bright pixels outside it (a coded target's ring in an
+        oblique view) are masked as the full frame masks a crowded window's neighbours
+        (:func:`~service.core.targets.detect_windows.measure_all`). NaN rows: nothing masked.
 
     Returns
     -------
@@ -202,9 +208,10 @@ def measure_windows(
         The measured disks.
     (M,) int
         Per window, the index of its disk in the blobs, or -1 when it holds no bright blob, when
-        the blob touches the window's edge (the prediction was off: tell the caller), when the
-        window leaves the image, or when the blob is saturated, too faint, too small or big, or
-        misshapen (merged, notched, occluded).
+        the blob touches the window's edge (the prediction was off: tell the caller; a disk the
+        image border cuts), or when the blob is saturated, too faint, too small or big, or
+        misshapen (merged, notched, occluded). A window that would leave the image is made as
+        large as the image allows (a whole disk near the border is measured, as in the full frame).
     """
     img = _check_image(image)
     full, contrast, seg = _levels(img, settings)
@@ -216,7 +223,10 @@ def measure_windows(
     if noise_dn is not None and noise_dn > 0:
         seg, contrast = max(seg, K_SEG * noise_dn), max(contrast, K_PEAK * noise_dn)
     # one compiled call (windows, assessment, the accepted ones' rows): ROI tracking's every frame
+    masks = np.full((uv.shape[0], 5), np.nan) if own is None else kernel_array(np.reshape(own, (-1, 5)))
+    if masks.shape[0] != uv.shape[0]:
+        raise ValueError(f"own has {masks.shape[0]} rows for {uv.shape[0]} predictions")
     table, sigma, fill, found = measure_predicted_kernel(
-        img, uv, half, seg, contrast, full, *assess_constants(settings), settings.centre == "edge"
+        img, uv, half, seg, contrast, full, *assess_constants(settings), settings.centre == "edge", masks
     )
     return blobs_from_table(table, sigma, fill), found

@@ -300,30 +300,46 @@ def test_assessment_is_the_numpy_decision(rng):
     assert all(x.shape == (0,) for x in empty)
 
 
+@pytest.mark.parametrize("masked", [False, True])
 @pytest.mark.parametrize("edge_fit", [False, True])
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
-def test_predicted_windows_are_measured_and_assessed_as_the_numpy_path_does(rng, dtype, edge_fit):
+def test_predicted_windows_are_measured_and_assessed_as_the_numpy_path_does(rng, dtype, edge_fit, masked):
     """The one call of ROI tracking against measure_all + assess + the selection of accepted
     windows (what measure_windows did in numpy): the same disks, rows, sigma, fill and indices;
-    with the edge fit, the centres and sigma are the edge fit's where it held."""
+    with the edge fit, the centres and sigma are the edge fit's where it held; with own regions
+    (a coded target's ring masked), every other window's neighbours masked as measure_all masks them."""
     img, full, centres, radii = _scene(rng, dtype)
     n = len(centres)
     uv = centres + rng.uniform(-1.5, 1.5, (n, 2))
     uv[0] = [np.nan, 40.0]  # no prediction
-    uv[1] = [3.0, 3.0]  # a window reaching out of the image
+    uv[1] = [3.0, 3.0]  # a window reaching out of the image: made as large as it allows (3 px)
     half = np.ascontiguousarray(np.ceil(radii + 5), dtype=np.intp)
     half[2] = 2  # too small for its disk: refused
     seg, contrast = 0.03 * full, 0.08 * full
     limits, codes = assess_constants(DetectSettings())
     frozen = img.view()
     frozen.flags.writeable = False  # a replayed frame is read-only: the same measurement
+    own = np.full((n, 5), np.nan)
+    if masked:  # every other window: the disk and 1.5 px about the prediction
+        r = (radii[::2] + 1.5) ** -2
+        own[::2] = np.column_stack([uv[::2] - np.rint(uv[::2]), r, 0 * r, r])
+        own[0] = np.nan
     table, sigma, fill, found = measure_predicted_kernel(
-        frozen, uv, half, seg, contrast, float(full), limits, codes, edge_fit
+        frozen, uv, half, seg, contrast, float(full), limits, codes, edge_fit, own
     )
+    if masked:  # some window had a neighbour to mask (the scene's crossed windows)
+        plain = measure_predicted_kernel(
+            frozen, uv, half, seg, contrast, float(full), limits, codes, edge_fit, np.full((n, 5), np.nan)
+        )
+        assert not np.array_equal(found, plain[3]) or not np.array_equal(table, plain[0])
 
     finite = np.isfinite(uv).all(axis=1)
     c = np.rint(np.where(finite[:, None], uv, -1e6)).astype(np.intp).T.copy()
-    meas, placed = measure_all(img, c[0], c[1], np.where(finite, half, 0), np.full(n, seg), full, None, edge_fit)
+    h_img, w_img = img.shape
+    fits = np.minimum.reduce([half, c[0], w_img - 1 - c[0], c[1], h_img - 1 - c[1]])  # at the border: smaller
+    meas, placed = measure_all(
+        img, c[0], c[1], np.where(finite, np.maximum(fits, 0), 0), np.full(n, seg), full, own, edge_fit
+    )
     reason, sigma_ref, fill_ref = assess(meas, placed, DetectSettings(), np.full(n, contrast))
     if edge_fit:  # the edge fit's centre and sigma where it held (blobs_from's choice)
         held = np.isfinite(meas.edge_sigma)
@@ -331,7 +347,7 @@ def test_predicted_windows_are_measured_and_assessed_as_the_numpy_path_does(rng,
         meas.table[: K.UV + 2, held] = meas.edge_uv[held].T
         sigma_ref = np.where(held, meas.edge_sigma, sigma_ref)
     ok = ((reason < 0) & ~meas.edge & placed).nonzero()[0]
-    assert 0 < ok.size < n - 3 and not placed[:2].any() and found[2] == -1  # accepted, refused, outside
+    assert 0 < ok.size < n - 3 and not placed[0] and placed[1] and found[1] == found[2] == -1  # refused ones
     np.testing.assert_array_equal(found[ok], np.arange(ok.size))
     assert np.all(np.delete(found, ok) == -1)
     np.testing.assert_array_equal(table, meas.table[:, ok])
