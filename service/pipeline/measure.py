@@ -599,6 +599,8 @@ class FrameMeasurer:
             rows,
             uv_pred,
             self._f_px,
+            half,
+            float(s.code_family.ring_inner),
         )
         try:
             blobs, found = measure_windows(image, uv_pred, half, self._roi_detect, own)

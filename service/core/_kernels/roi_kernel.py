@@ -35,7 +35,7 @@ OWN_RADII = 1.5
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def ring_masks_kernel(R_cf, t_cf, xyz, radius_mm, coded, rows, uv_pred, f_px):
+def ring_masks_kernel(R_cf, t_cf, xyz, radius_mm, coded, rows, uv_pred, f_px, half, ring_inner):
     """Per target ``rows`` (n,) of the field, the own region (n, 5) ``(x0, y0, Q_uu, Q_uv, Q_vv)``
     that :func:`~service.core._kernels.crowd_kernel.mask_windows_kernel` keeps of its window: for a
     ``coded`` (per field row) one, its disk's ellipse predicted by the pose ``R_cf``, ``t_cf``
@@ -44,7 +44,9 @@ def ring_masks_kernel(R_cf, t_cf, xyz, radius_mm, coded, rows, uv_pred, f_px):
     ellipse is the projection's first-order (affine) image of the disk (radius ``radius_mm`` per
     field row, in the field's x-y plane) through a pinhole of ``f_px`` px; the lens's distortion
     changes it by far less than the gap it has to fit in. In an oblique view the ring comes within
-    twice the disk's foreshortened radius of its centre, inside any window that holds the disk."""
+    twice the disk's foreshortened radius of its centre, inside any window that holds the disk; a
+    ring (from ``ring_inner`` disk radii) that stays 2 px (its blur) beyond the window of half size
+    ``half`` (n,) px costs no masking and is not given a region."""
     n = rows.size
     own = np.full((n, 5), np.nan)
     for i in range(n):
@@ -63,6 +65,11 @@ def ring_masks_kernel(R_cf, t_cf, xyz, radius_mm, coded, rows, uv_pred, f_px):
         # x' (A A')^-1 x <= 1: (A A')^-1 = (A^-1)' A^-1
         det = a00 * a11 - a01 * a10
         if not abs(det) > 1e-12:
+            continue
+        # the ellipse's minor semi-axis: the smaller singular value of A, over OWN_RADII
+        p, q = a00 * a00 + a01 * a01 + a10 * a10 + a11 * a11, abs(det)
+        b_disk = np.sqrt(max(0.5 * (p - np.sqrt(max(p * p - 4.0 * q * q, 0.0))), 0.0)) / OWN_RADII
+        if ring_inner * b_disk - 2.0 > half[i] + 1.0:  # the ring stays clear of the window
             continue
         b00, b01, b10, b11 = a11 / det, -a01 / det, -a10 / det, a00 / det  # A^-1
         own[i, 0] = uv_pred[i, 0] - np.rint(uv_pred[i, 0])
@@ -113,6 +120,8 @@ def warm_up() -> None:
         rows,
         np.zeros((3, 2)),
         1800.0,
+        np.full(3, 10, dtype=np.int64),
+        2.0,
     )
     # the disks' pixels come as a view of measure_predicted_kernel's table, (2, k) transposed, or
     # (edge centres, the default) as an array of their own

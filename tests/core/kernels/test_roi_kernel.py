@@ -58,7 +58,7 @@ def test_a_coded_targets_own_region_is_its_disk_seen_through_the_pinhole_grown_t
             return f_px * p[:, :2] / p[:, 2:3]
 
         uv_pred = pixel(xyz) + 650.0 + rng.uniform(-0.5, 0.5, (n_field, 2))
-        own = ring_masks_kernel(R_cf, t_cf, xyz, radius_mm, coded, rows, uv_pred, f_px)
+        own = ring_masks_kernel(R_cf, t_cf, xyz, radius_mm, coded, rows, uv_pred, f_px, np.full(n_field, 40), 2.0)
         assert np.all(np.isnan(own[~coded])) and np.all(np.isfinite(own[coded]))
         for j in np.flatnonzero(coded):
             ring = xyz[j] + OWN_RADII * radius_mm[j] * np.column_stack([np.cos(theta), np.sin(theta), 0 * theta])
@@ -67,3 +67,9 @@ def test_a_coded_targets_own_region_is_its_disk_seen_through_the_pinhole_grown_t
             assert np.allclose([x0, y0], uv_pred[j] - np.rint(uv_pred[j]))
             rho = qa * d[:, 0] ** 2 + 2 * qb * d[:, 0] * d[:, 1] + qc * d[:, 1] ** 2  # 1 on the region's edge
             assert np.all(np.abs(np.sqrt(rho) - 1.0) < 1e-2), (view_deg, j, np.abs(np.sqrt(rho) - 1).max())
+    # a ring that stays clear of its window (head-on, a small window) is not masked: no region
+    R_cf, t_cf = np.diag([1.0, -1.0, -1.0]), np.array([0.0, 0.0, 1000.0])
+    uv_pred = np.zeros((n_field, 2))
+    small = ring_masks_kernel(R_cf, t_cf, xyz, radius_mm, coded, rows, uv_pred, f_px, np.full(n_field, 3), 2.0)
+    large = ring_masks_kernel(R_cf, t_cf, xyz, radius_mm, coded, rows, uv_pred, f_px, np.full(n_field, 40), 2.0)
+    assert np.all(np.isnan(small)) and np.all(np.isfinite(large[coded]))
