@@ -98,8 +98,8 @@ def test_roi_tracking_follows_the_independent_images(measurer):
         if modes[-1] == "roi":
             roi.merge(probe)
     assert modes[0] == "full" and modes[1:].count("roi") >= 6, modes
-    # a window must lie wholly in the image: disks within a window's half size (~10 px) of the border are
-    # left to the full frames (seen: 97.7 % named)
-    assert roi.failed == 0 and roi.wrong == 0 and roi.found >= 0.95 * roi.visible, (roi.found, roi.visible)
+    # seen: every one (before the coded targets' rings were masked in their windows, 97.7 %: in these
+    # oblique views the ring reaches a window that holds the disk)
+    assert roi.failed == 0 and roi.wrong == 0 and roi.found >= 0.99 * roi.visible, (roi.found, roi.visible)
     rms = float(np.sqrt(np.mean(np.square(roi.centre_err))))
     assert 0.004 < rms < 0.03 and max(roi.pose_mm) < 0.06, (rms, roi.pose_mm)
