@@ -104,7 +104,7 @@ def test_roi_tracking_follows_a_motion_and_falls_back_when_targets_are_lost(cell
             continue
         assert isinstance(outcome.result, PoseResult), (k, outcome.result)
         errors.append(pose_difference(outcome.result.T_field_camera, T)[0])
-        # coded targets stay in the ROI measurement (their windows must avoid the ring)
+        # coded targets stay in the ROI measurement (their rings kept out of their windows)
         assert outcome.result.n_coded >= 25, (k, outcome.mode, outcome.result.n_coded)
     assert modes[0] == "full"
     assert modes[1:6] == ["roi"] * 5  # tracking after the first frame

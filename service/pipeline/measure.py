@@ -537,8 +537,8 @@ class FrameMeasurer:
             measured = self._measure_targets(image, T_pred, rows, uv_pred, depth, TIGHT_SLACK, check_centred=True)
         if measured is None and s.roi_refine:
             # stage 1: locate the uncoded targets in generous windows and re-solve the pose, so
-            # that stage 2 can measure every target (coded ones too, whose windows must stay
-            # inside the ring's gap) in tight windows around precise predictions
+            # that stage 2 can measure every target (coded ones too, whose rings are masked about
+            # the predicted disk) in tight windows around precise predictions
             uncoded = self.field.codes[rows] < 0
             half = self._window_half_size(rows[uncoded], depth[uncoded], slack)
             try:

@@ -191,7 +191,8 @@ def measure_windows(
     uv_predicted : (M, 2) float, px
     half_size_px : int or (M,) int
         The disk plus 2 px and the prediction's error must fit in it; for a coded target it must
-        stay inside the ring's gap (below about twice the disk radius less 3 px).
+        stay inside the ring's gap (below about twice the disk's minor semi-axis less 3 px), or
+        the ring must be masked (``own``).
     settings : DetectSettings
         ``window_px``, ``border_px`` and ``max_candidates`` are not used. With ``noise_dn`` (e.g.
         the last full frame's), the segmentation and contrast levels follow it as in
