@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from service.bench.speed import path_poses, peer_measure
 from service.core.geometry.frames import inv_T, pose_difference
 from service.core.geometry.opencv_compat import brown_from_opencv
 from service.core.results import PoseResult
@@ -185,21 +186,10 @@ def frames_of(view: View, n: int, seed: int) -> list[SheetFrame]:
 
 
 def path_frames(n: int, seed: int, view_deg: float = 60.0, light: Light = Light()) -> list[SheetFrame]:
-    """``n`` frames 4 ms apart along the smooth path of ``posecell bench speed`` (a robot at ~100 mm/s),
-    views ``view_deg`` +- 10 deg: a sequence for ROI tracking."""
+    """``n`` frames 4 ms apart along ``posecell bench speed``'s path (a robot at ~100 mm/s), views
+    ``view_deg`` +- 10 deg: a sequence for ROI tracking."""
     rng = np.random.default_rng(seed)
-    out = []
-    for k in range(n):
-        a = 0.01 * k  # rad along the path: ~0.4 mm and ~0.1 deg per frame
-        T = reference_pose(
-            view_angle_deg=view_deg + 10.0 * np.sin(a),
-            distance_mm=1000.0 + 100.0 * np.sin(2 * a),
-            roll_deg=20.0 * np.sin(a),
-            azimuth_deg=30.0 * np.sin(a),
-            look_at_mm=(40.0 * np.cos(a), 30.0 * np.sin(a), 0.0),
-        )
-        out.append(image_of_sheet(T, light, rng))
-    return out
+    return [image_of_sheet(T, light, rng) for T in path_poses(n, view_deg)]
 
 
 @dataclass
@@ -269,8 +259,6 @@ def measure_peer(field_: Field, frame: SheetFrame, score: Score) -> None:
     """The peer (``posecell bench speed``'s: threshold, labelling, centroids, ``solvePnP`` with the
     true OpenCV camera), given the identities (matched to the truth within 2 px, not timed)."""
     from scipy.spatial import cKDTree
-
-    from service.bench.speed import peer_measure
 
     score.visible += int(_visible(frame).sum())
     t0 = time.perf_counter()

@@ -34,28 +34,32 @@ from service.sim.scene import reference_camera, reference_field, reference_pose
 Array = NDArray[np.float64]
 
 
-def frames_along_path(
-    n: int, seed: int, settings: RenderSettings | None = None, view_deg: float = 80.0
-) -> list[RenderedFrame]:
-    """``n`` rendered frames, 4 ms apart along a smooth path (a robot at ~100 mm/s).
-
-    Views ``view_deg`` +- 10 deg (90: head-on); the renderer's defaults at 80 % exposure unless ``settings``.
-    """
-    camera, field = reference_camera(), reference_field()
-    rng = np.random.default_rng(seed)
-    settings = settings or RenderSettings(exposure_scale=0.8)
+def path_poses(n: int, view_deg: float = 80.0) -> list[Array]:
+    """``n`` poses ``T_field_camera`` (4, 4) 4 ms apart along a smooth path (a robot at ~100 mm/s):
+    views ``view_deg`` +- 10 deg (90: head-on), ~0.9-1.1 m from the plate."""
     out = []
     for k in range(n):
         a = 0.01 * k  # rad along the path: ~0.4 mm and ~0.1 deg per frame
-        T = reference_pose(
-            view_angle_deg=view_deg + 10.0 * np.sin(a),
-            distance_mm=1000.0 + 100.0 * np.sin(2 * a),
-            roll_deg=20.0 * np.sin(a),
-            azimuth_deg=30.0 * np.sin(a),
-            look_at_mm=(40.0 * np.cos(a), 30.0 * np.sin(a), 0.0),
+        out.append(
+            reference_pose(
+                view_angle_deg=view_deg + 10.0 * np.sin(a),
+                distance_mm=1000.0 + 100.0 * np.sin(2 * a),
+                roll_deg=20.0 * np.sin(a),
+                azimuth_deg=30.0 * np.sin(a),
+                look_at_mm=(40.0 * np.cos(a), 30.0 * np.sin(a), 0.0),
+            )
         )
-        out.append(render_frame(camera, field, T, settings, rng))
     return out
+
+
+def frames_along_path(
+    n: int, seed: int, settings: RenderSettings | None = None, view_deg: float = 80.0
+) -> list[RenderedFrame]:
+    """``n`` rendered frames along :func:`path_poses`; the renderer's defaults at 80 % exposure unless ``settings``."""
+    camera, field = reference_camera(), reference_field()
+    rng = np.random.default_rng(seed)
+    settings = settings or RenderSettings(exposure_scale=0.8)
+    return [render_frame(camera, field, T, settings, rng) for T in path_poses(n, view_deg)]
 
 
 # The peer's connected-component labelling. OpenCV's default for 8-connectivity (Spaghetti) gives
