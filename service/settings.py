@@ -192,6 +192,13 @@ class ProcessingConfig(_Section):
     # what a target's centre is measured as: the centre of the disk's ellipse fitted to its half-level
     # edge (twice as consistent on real panels), or the intensity centroid (~1 us a target less)
     centre: Literal["centroid", "edge"] = "edge"
+    max_saturated_px: int | None = Field(
+        None,
+        ge=0,
+        le=100_000_000,
+        description="none: targets clipped at the saturation level are measured (and counted as saturated); "
+        "a number: a target with more pixels at the saturation level than this is rejected, [0, 10^8]",
+    )
     min_contrast_dn: float | None = Field(
         None,
         gt=0,

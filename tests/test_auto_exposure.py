@@ -116,7 +116,7 @@ def test_the_running_cell_steers_an_over_or_under_exposed_camera_to_poses(tmp_pa
     assert 1000.0 <= health["exposure_us"] <= 4000.0  # the reference scene's exposure is 2000 us
 
 
-def test_without_the_control_an_over_exposed_camera_gives_no_pose(tmp_path):
+def test_without_the_control_an_over_exposed_camera_is_said_to_saturate(tmp_path):
     worker = _worker(tmp_path, 8000.0, auto=False)
     got: list = []
     worker.subscribe(got.append)
@@ -130,8 +130,10 @@ def test_without_the_control_an_over_exposed_camera_gives_no_pose(tmp_path):
         worker.stop()
     results = [m for m in got if m.t_exposure_host_ns is not None]
     assert health["auto_exposure"] == {"on": False, "steps": 0, "held": None} and health["exposure_us"] == 8000.0
-    assert len(results) >= 10 and not any(m.ok for m in results)
-    assert {m.reason for m in results} == {"too_few_targets"}
+    # four times the exposure clips most disks: measured all the same (they gave no pose before
+    # clipped disks were measured), and said
+    assert len(results) >= 10 and all(m.ok for m in results)
+    assert health["targets_saturated"] >= 100 and "shorten the exposure" in health["saturation"]
 
 
 def test_a_camera_refusing_the_exposure_step_has_the_control_switched_off(tmp_path, caplog):
@@ -174,18 +176,17 @@ def test_a_held_exposure_control_takes_no_step_until_released(tmp_path):
         held = worker.health()["cameras"]["cam0"]
         n_held = len(got)
         worker.hold_exposure("")
-        # the camera runs on while we look: judge the results after the release, not the latest one
         deadline = time.monotonic() + 60.0
-        while time.monotonic() < deadline and not any(m.ok for m in got[n_held:]):
+        while time.monotonic() < deadline and worker.health()["cameras"]["cam0"]["auto_exposure"]["steps"] < 1:
             time.sleep(0.1)
         released = worker.health()["cameras"]["cam0"]
     finally:
         worker.stop()
     assert held["auto_exposure"] == {"on": True, "steps": 0, "held": "accuracy test 1 (table1) is running"}
     assert held["exposure_us"] == 8000.0
-    assert n_held >= 15 and not any(m.ok for m in got[:n_held])  # 8000 us clips every target
+    assert n_held >= 15 and held["targets_saturated"] >= 100  # 8000 us clips most targets
     assert released["auto_exposure"]["held"] is None and released["auto_exposure"]["steps"] >= 1
-    assert any(m.ok for m in got[n_held:])
+    assert released["exposure_us"] < 8000.0
 
 
 @pytest.mark.parametrize("n", [1, 2, 7, 230])

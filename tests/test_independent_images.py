@@ -67,7 +67,8 @@ def measurer():
     return FrameMeasurer(fit.camera, sheet()[1])
 
 
-@pytest.mark.parametrize("view", [VIEWS[0], VIEWS[2], VIEWS[3], VIEWS[5]], ids=lambda v: v.name)
+# VIEWS[6:8]: overexposed, most disks clipped (before clipped disks were measured: no pose at 2x)
+@pytest.mark.parametrize("view", [VIEWS[0], VIEWS[2], VIEWS[3], VIEWS[5], VIEWS[6], VIEWS[7]], ids=lambda v: v.name)
 def test_posecell_measures_the_independent_images_with_its_defaults_better_than_the_peer(measurer, view):
     ours, peer = Score(), Score()
     frames = frames_of(view, 2, seed=7)

@@ -246,9 +246,12 @@
       if (isNum(c.exposure_us)) {
         facts.push(`exposure ${fix(c.exposure_us, 0)} µs${c.auto_exposure && c.auto_exposure.on ? " (auto)" : ""}`);
       }
+      // clipped disks are measured, but they say the exposure is too long (the sentence: on hover)
+      if (isNum(c.targets_saturated) && c.targets_saturated > 0) facts.push(`${c.targets_saturated} targets saturated`);
       const off = offsets[name];
       if (off && isNum(off.offset_ms)) facts.push(`clock offset ${fix(off.offset_ms, 2)} ± ${fix(off.sigma_ms, 2)} ms`);
       card.querySelector(".device-facts").textContent = facts.join(" · ");
+      card.querySelector(".device-facts").title = c.saturation || "";
       // a device that is not ok always says why, even when the driver gave no sentence
       const error = c.error || (c.state !== "ok" ? `camera ${name} is ${c.state}` : "");
       card.querySelector(".device-error").textContent = error;

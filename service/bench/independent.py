@@ -165,6 +165,9 @@ VIEWS = (
     View("head-on, 0.7 m (part of the sheet)", 90.0, 700.0),
     View("60 deg, 1.4 m", 60.0, 1400.0),
     View("60 deg, 1 m, blur 1.2 px, read noise 4 DN", 60.0, 1000.0, Light(blur_px=1.2, read_noise_dn=4.0)),
+    # the ring light's return at twice and four times full scale: most disks' tops clipped at 255
+    View("60 deg, 1 m, overexposed 2x", 60.0, 1000.0, Light(peak_dn=2 * Light.peak_dn)),
+    View("60 deg, 1 m, overexposed 4x", 60.0, 1000.0, Light(peak_dn=4 * Light.peak_dn)),
 )
 
 

@@ -77,6 +77,13 @@ def add_parser(subparsers: Subparsers) -> None:
         "about twice as consistent on real panels), or the intensity centroid (~1 us a target less; "
         "the default before 2026-12-06)",
     )
+    m.add_argument(
+        "--max-saturated-px",
+        type=int,
+        default=None,
+        help="reject a target with more pixels at the saturation level than this (a camera whose pixels "
+        "bloom); default: targets clipped by an overexposure are measured, and counted in the output",
+    )
     m.add_argument("images", nargs="+", metavar="IMAGE", help="PNG, TIFF or PGM, 8 or 16 bit")
     m.set_defaults(func=run)
 
@@ -100,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
         codes_enough=args.codes_enough,
         bit_depth=args.bit_depth,
         centre=args.centre,
+        max_saturated_px=args.max_saturated_px,
         correct_eccentricity=not args.no_eccentricity,
     )
     if warning := formats.centre_mismatch(formats.calibrated_centre(camera_data), settings.detect.centre):
@@ -116,6 +124,9 @@ def run(args: argparse.Namespace) -> int:
             outcome = measurer.measure(image)
             out = outcome.result.to_dict()
             out["timings_ms"] = {k: round(v, 3) for k, v in outcome.timings_ms.items()}
+            if outcome.brightness is not None and outcome.brightness.n_saturated:
+                out["targets_saturated"] = outcome.brightness.n_saturated
+                print_err(f"posecell measure: {path}: {outcome.brightness.saturation_note}")
         out = {"image": str(path), **out}
         failed += not out["ok"]
         print_json(out)

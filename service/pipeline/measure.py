@@ -133,6 +133,7 @@ class MeasureSettings:
         range_mm: tuple[float, float] | None = None,
         bit_depth: int | None = None,
         centre: str | None = None,
+        max_saturated_px: int | None = None,
     ) -> MeasureSettings:
         """The settings of the measuring options as the service's ``[processing]`` section, ``posecell
         measure`` and ``posecell calibrate camera`` name them (the one mapping of those knobs).
@@ -145,7 +146,9 @@ class MeasureSettings:
         is the images' significant bits, so their saturation level (``2 ** bit_depth - 1``, which the
         8-bit levels scale to): a 12-bit camera's frames come as uint16 whose values end at 4095; None:
         the image dtype's maximum. ``centre``: what a target's centre is measured as, "centroid" or
-        "edge" (:attr:`DetectSettings.centre`).
+        "edge" (:attr:`DetectSettings.centre`). ``max_saturated_px``: None measures disks clipped at the
+        saturation level (flagged); a number rejects those with more pixels there
+        (:attr:`DetectSettings.max_saturated_px`).
         """
         if code_family is not None and code_family not in FAMILIES:
             raise ValueError(f"unknown code family {code_family!r}; choose from {', '.join(FAMILIES)}")
@@ -159,6 +162,7 @@ class MeasureSettings:
             min_area_px=d.min_area_px if min_area_px is None else min_area_px,
             max_area_px=d.max_area_px if max_area_px is None else max_area_px,
             centre=d.centre if centre is None else centre,
+            max_saturated_px=max_saturated_px,
         )
         return replace(
             m,
@@ -179,10 +183,11 @@ class MeasureSettings:
 class Brightness:
     """How bright a frame's targets came out, in the image's DN: what the exposure control steers by.
 
-    n_measured -- disks measured (the ROI windows' or the full frame's blobs)
+    n_measured -- disks measured unclipped (the ROI windows' or the full frame's blobs)
     peak_dn -- the 90th percentile of their brightest pixels (the brightest tenth may clip first)
     background_dn -- the median of their local backgrounds
-    n_saturated -- blobs rejected as saturated (full frame only; a saturated ROI window is not found)
+    n_saturated -- disks clipped at the saturation level: measured (flagged) or, with
+        ``max_saturated_px``, rejected (only the full frame sees those)
     full_dn -- the saturation level
     """
 
@@ -193,13 +198,28 @@ class Brightness:
     full_dn: float
 
     @classmethod
-    def of(cls, blobs: Blobs, n_saturated: int, full_dn: float) -> Brightness:
+    def of(cls, blobs: Blobs, n_rejected_saturated: int, full_dn: float) -> Brightness:
+        clipped = int(np.count_nonzero(blobs.saturated))
+        n_saturated = n_rejected_saturated + clipped
+        if clipped:  # how far below full scale the others are is what the exposure steers by
+            blobs = blobs.take(np.flatnonzero(~blobs.saturated))
         n = len(blobs)
         if n == 0:
             return cls(0, 0.0, 0.0, n_saturated, full_dn)
         k = min(n - 1, int(0.9 * n))
         peak = float(np.partition(blobs.peak_dn, k)[k])  # a partition, not a sort: ~200 disks a frame
         return cls(n, peak, _median(blobs.background_dn), n_saturated, full_dn)
+
+    @property
+    def saturation_note(self) -> str:
+        """What the saturated targets mean for the user (empty without any)."""
+        if not self.n_saturated:
+            return ""
+        seen = self.n_measured + self.n_saturated
+        return (
+            f"{self.n_saturated} of {seen} targets saturated at {self.full_dn:g} DN: shorten the exposure "
+            "or dim the ring light"
+        )
 
 
 def _median(x: NDArray[np.float64]) -> float:
@@ -313,6 +333,15 @@ def _with_calibration_hint(e: SolveError, camera: BrownFraser) -> SolveError:
         "writes.",
         e.details,
     )
+
+
+def _with_saturation_hint(e: SolveError, brightness: Brightness) -> SolveError:
+    """``e`` with the saturated targets named when they are a fifth or more of those seen: rejected
+    (``max_saturated_px``), or clipped so far that their rings no longer read."""
+    b = brightness
+    if b.n_saturated < max(2, 0.2 * (b.n_measured + b.n_saturated)):
+        return e
+    return SolveError(e.reason, f"{e.message.rstrip('.')}; {b.saturation_note}.", e.details)
 
 
 class _Clock:
@@ -432,7 +461,7 @@ class FrameMeasurer:
         try:
             result = self._identify_and_resect(image, blobs, clock)
         except SolveError as e:
-            failure = Failure.from_error(_with_calibration_hint(e, self.camera))
+            failure = Failure.from_error(_with_saturation_hint(_with_calibration_hint(e, self.camera), brightness))
             return Outcome(failure, "full", clock.ms, len(blobs), counts, brightness)
         return Outcome(result, "full", clock.ms, len(blobs), counts, brightness)
 

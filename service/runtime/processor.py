@@ -65,6 +65,7 @@ def measure_settings(p: ProcessingConfig, bit_depth: int | None = None) -> Measu
         correct_eccentricity=p.correct_eccentricity,
         roi_tracking=p.roi_tracking,
         centre=p.centre,
+        max_saturated_px=p.max_saturated_px,
     )
 
 

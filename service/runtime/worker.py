@@ -3,8 +3,7 @@
 Threads (one owner per device, python-can / Opentrons style):
 
 - one acquisition thread per camera (``service.runtime.acquisition.CameraChannel``);
-- the robot driver's own reader thread, plus a small supervisor here that
-  re-opens the robot when its link drops;
+- the robot driver's own reader thread, plus a small supervisor here that re-opens the robot when its link drops;
 - one processing thread that takes the newest frame of each camera, pairs it
   with the robot's pose at the exposure instant, measures it (ROI tracking,
   full frame on loss) and publishes the result to subscribers (the API's
@@ -16,15 +15,13 @@ Nothing here raises on bad data: every frame gives a
 :class:`~service.core.measurement.Measurement`, a failure with a ``reason`` when it
 could not be measured; the same frozen object goes to every consumer.
 
-What a client sees during a fault. A camera that is disconnected, failed or
-stalled gets an outage result (``"ok": false``, ``camera_disconnected``) at
-once and then once a second, to the stream, to waiting requests and as its
-newest result; a robot outage leaves the camera pose and says why the flange
-part is missing. :meth:`Worker.current` marks a result older than a few frame
-periods ``"stale": true`` with its age. A triggered measurement is answered with
-the row's sequence number in the store; the API acknowledges it only once that
-row is committed (:meth:`Worker.wait_stored`), so the processing thread never
-waits for the disk.
+What a client sees during a fault. A camera that is disconnected, failed or stalled gets an outage
+result (``"ok": false``, ``camera_disconnected``) at once and then once a second, to the stream, to
+waiting requests and as its newest result; a robot outage leaves the camera pose and says why the
+flange part is missing. :meth:`Worker.current` marks a result older than a few frame periods
+``"stale": true`` with its age. A triggered measurement is answered with the row's sequence number in
+the store; the API acknowledges it only once that row is committed (:meth:`Worker.wait_stored`), so
+the processing thread never waits for the disk.
 """
 
 from __future__ import annotations
@@ -45,6 +42,7 @@ from drivers.base import DriverError, Frame, RobotDriver, TriggerMode
 from drivers.registry import make_camera, make_robot
 from service.core.measurement import Measurement
 from service.core.results import Failure, Reason
+from service.pipeline.measure import Brightness
 from service.runtime.acquisition import CameraChannel, DeviceState, Wakeup
 from service.runtime.arm import ArmLease
 from service.runtime.calibration_state import CalibrationState
@@ -110,6 +108,7 @@ class Worker:
         self.exposure: dict[str, ExposureControl] = {}  # per camera with automatic exposure
         self.arm = ArmLease()  # the workflow moving the simulated arm now (one at a time)
         self.exposure_hold = ""  # why the exposure control holds still (an accuracy test runs), or ""
+        self.brightness: dict[str, Brightness] = {}  # per camera, its last measured frame's targets
         self.robot: RobotDriver | None = None
         self.robot_state = DeviceState.absent if settings.robot.driver == "none" else DeviceState.starting
         self.robot_error = ""
@@ -313,6 +312,8 @@ class Worker:
         self.exposure_hold = why
 
     def _steer_exposure(self, name: str, frame: Frame, pending: Pending) -> None:
+        if pending.outcome is not None and pending.outcome.brightness is not None:
+            self.brightness[name] = pending.outcome.brightness
         control, ch = self.exposure.get(name), self.cameras.get(name)
         if control is None or ch is None or pending.outcome is None or self.exposure_hold:
             return
@@ -639,6 +640,8 @@ class Worker:
                 "steps": control.steps if control else 0,
                 "held": self.exposure_hold or None,
             }
+            if (b := self.brightness.get(name)) is not None:  # the last measured frame's
+                cam.update(targets_saturated=b.n_saturated, saturation=b.saturation_note or None)
         for name, proc in self.processors.items():
             if name not in cams:
                 cams[name] = {"state": str(DeviceState.failed), "error": proc.failed_reason}

@@ -165,14 +165,31 @@ def test_ellipse_is_the_disk_edge_head_on_and_in_an_oblique_view(reference):
     assert np.sqrt(np.mean(err**2)) < 1.5 * np.sqrt(np.mean(tb.sigma_px**2))
 
 
-def test_saturated_targets_are_rejected_and_counted():
+def test_saturated_targets_are_measured_and_flagged():
+    # twice the exposure: most disks' flat tops clipped at 255. Clipping a symmetric plateau keeps it
+    # symmetric, so the centres hold; before, every clipped disk was rejected and the frame had no pose
     frame = render(RenderSettings(exposure_scale=2.0))
     blobs, rejected = detect_blobs(frame.image)
+    found = match(blobs, frame.uv_disk_centroid)
+    assert rejected.counts["saturated"] == 0
+    ok = found >= 0
+    assert ok.sum() >= 0.95 * len(frame.ids)
+    clipped = blobs.saturated[found[ok]]
+    assert clipped.sum() >= 200 and np.all(blobs.peak_dn[blobs.saturated] == 255)
+    err = blobs.uv[found[ok]] - frame.uv_disk_centroid[ok]
+    assert np.sqrt(np.mean(err[clipped] ** 2)) < 0.05
+    assert np.all(np.abs(err) < 6 * blobs.sigma_px[found[ok], None])
+
+
+def test_saturated_targets_are_rejected_and_counted_when_asked():
+    frame = render(RenderSettings(exposure_scale=2.0))
+    blobs, rejected = detect_blobs(frame.image, DetectSettings(max_saturated_px=2))
     found = match(blobs, frame.uv_disk_centroid)
     assert rejected.counts["saturated"] >= 200
     assert rejected.counts["saturated"] + np.sum(found >= 0) == len(frame.ids)
     # the few accepted ones are the corners (vignetting), with at most a pixel or two at full scale
     ok = found >= 0
+    assert not blobs.saturated.any()
     err = blobs.uv[found[ok]] - frame.uv_disk_centroid[ok]
     assert np.all(np.abs(err) < 6 * blobs.sigma_px[found[ok], None])
 

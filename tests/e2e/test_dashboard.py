@@ -372,6 +372,30 @@ def test_unplugged_camera_card_says_disconnected_and_why_then_recovers(page: Pag
     page.wait("document.getElementById('frame-failure').hidden", "a live frame again", 5)
 
 
+def test_an_overexposed_camera_card_counts_its_saturated_targets(page: Page, cell: LiveServer) -> None:
+    cam = '[data-camera="cam0"]'
+    page.wait(f"document.querySelector('{cam}')?.dataset.state === 'ok'", "camera cam0 ok")
+    worker = cell.worker
+    before = worker.settings.cameras[0]
+    over = before.model_copy(
+        update={"exposure_us": 8000.0, "auto_exposure": before.auto_exposure.model_copy(update={"enabled": False})}
+    )
+    assert worker.reconfigure_camera(over) == ""
+    try:
+        page.wait(
+            f"/[1-9]\\d* targets saturated/.test(document.querySelector('{cam} .device-facts').textContent)",
+            "the saturated targets counted on the card",
+            15,
+        )
+        assert "shorten the exposure" in page.js(f"document.querySelector('{cam} .device-facts').title")
+        assert page.text(f"{cam} .state") == "ok"  # measured all the same
+    finally:
+        assert worker.reconfigure_camera(before) == ""
+    page.wait(
+        f"!/saturated/.test(document.querySelector('{cam} .device-facts').textContent)", "no saturated targets", 20
+    )
+
+
 def test_page_loads_nothing_from_outside_and_raises_no_script_error(page: Page, cell: LiveServer) -> None:
     urls = page.js("performance.getEntriesByType('resource').map(e => e.name)")
     assert urls, "the page fetched nothing"

@@ -27,7 +27,11 @@ from service.core._kernels import contour_kernel, crowd_kernel, edge_kernel, noi
 UV, ELLIPSE, FLUX, LEVEL, PEAK, BACKGROUND, SB2, K_SHOT, VAR_BASE, VAR_PER_K = 0, 0, 5, 6, 7, 8, 9, 10, 11, 12
 MISMATCH, NOISE_BG, M3SQ, KURT, KURT_MODEL, FLAT_TOP, VAR_MAJOR, SUMS = 13, 14, 15, 16, 17, 18, 19, 20
 EDGE_UV, EDGE_SIGMA = 27, 29  # the edge fit's centre (2 rows) and sigma; NaN where not asked or not held
-NF = 30
+N_SAT = 30  # the window's pixels at the saturation level (also returned as ``n_sat``)
+NF = 31
+# A disk with more pixels at the saturation level than this is clipped: measured on its flat top (its
+# plateau says nothing of the shot noise, see assess_kernel) and counted as saturated for the exposure
+CLIPPED_PX = 2
 
 # reassociation lets the pixel sums vectorise; NaN and inf keep their meaning (no nnan/ninf)
 _FAST = {"reassoc", "contract", "arcp"}
@@ -141,7 +145,7 @@ def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff, edge
     """
     n = cu.size
     out = np.zeros((NF, n))
-    out[EDGE_UV:] = np.nan
+    out[EDGE_UV : EDGE_SIGMA + 1] = np.nan
     n_sat = np.zeros(n, dtype=np.intp)
     edge = np.ones(n, dtype=np.bool_)
     hmax = 0
@@ -173,6 +177,7 @@ def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff, edge
         else:
             P = buf[o : o + s * s].reshape(s, s)
             n_sat[i], edge[i] = _window(P, 0, 0, img, v0, u0, h, seg[i], full, w, wi, sums, rb, ru, rv, out, i)
+        out[N_SAT, i] = n_sat[i]
         if edge_fit:
             e = out[:, i]
             u, v, sigma = edge_kernel.edge_fit(
@@ -460,7 +465,8 @@ def assess_kernel(out, n_sat, edge, usable, contrast, limits, codes):
             levels[i] = codes[2]
         elif not area <= max_area:
             levels[i] = codes[3]
-        plateau[i] = levels[i] < 0 and usable[i] and not edge[i] and out[3, i] >= min_b
+        # a clipped plateau has no shot noise: such disks would bias the coefficient low
+        plateau[i] = levels[i] < 0 and usable[i] and not edge[i] and out[3, i] >= min_b and n_sat[i] <= CLIPPED_PX
     k = np.median(out[K_SHOT][plateau]) / 0.918 if plateau.any() else 0.0
     reason, sigma, fill = np.empty(n, dtype=np.intp), np.empty(n), np.empty(n)
     for i in range(n):

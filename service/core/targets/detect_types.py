@@ -42,8 +42,13 @@ class DetectSettings:
     # what a target's centre is measured as: "edge" (the disk's ellipse fitted to its half-level edge:
     # service.core.targets.edge_centre) or "centroid" (intensity-weighted, in the window)
     centre: str = "edge"
+    # None: disks with clipped pixels are measured and flagged saturated (see detect_windows);
+    # a number: a disk with more pixels at the saturation level than this is rejected as saturated
+    max_saturated_px: int | None = None
 
     def __post_init__(self) -> None:
+        if self.max_saturated_px is not None and self.max_saturated_px < 0:
+            raise ValueError(f"max_saturated_px must be 0 or more, not {self.max_saturated_px}")
         if self.centre not in CENTRES:
             raise ValueError(f"centre must be one of {', '.join(CENTRES)}, not {self.centre!r}")
 
@@ -63,6 +68,8 @@ class Blobs:
     fill : (N,) float -- soft overlap of the blob with its ellipse (1: a perfect ellipse)
     has_ring : (N,) bool -- pieces of a coded target's ring were found around it (only these
         can be coded; :func:`~service.core.targets.detect.measure_windows` does not look and says False)
+    saturated : (N,) bool -- its flat top is clipped at the saturation level (more than
+        ``CLIPPED_PX`` pixels there): measured all the same, a sign that the exposure is too long
     """
 
     uv: Array
@@ -73,6 +80,7 @@ class Blobs:
     background_dn: Array
     fill: Array
     has_ring: NDArray[np.bool_]
+    saturated: NDArray[np.bool_]
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])

@@ -24,7 +24,13 @@ Per window (the circle of radius ``h + 1/2``):
   own predicted noise, so the tests hold for faint and bright targets alike. Notches that move
   the centre by less than about 0.3 px (at the reference noise) are not detected;
 - precision ``sigma_px``: pixel noise propagated through the centroid (:func:`measure_all`), with
-  the shot noise measured on the targets' plateaus.
+  the shot noise measured on the targets' plateaus (unclipped ones);
+- saturation: a disk whose flat top is clipped at the saturation level is measured all the same
+  and flagged (:attr:`~service.core.targets.detect_types.Blobs.saturated`): clipping flattens a
+  symmetric plateau symmetrically, so its centre holds (an overexposed sheet, 2-4 times full
+  scale: centres 0.01-0.02 px from the truth, ``posecell bench independent``). With
+  ``DetectSettings.max_saturated_px`` such disks are rejected instead (a sensor whose charge
+  blooms along its columns).
 """
 
 from __future__ import annotations
@@ -37,7 +43,7 @@ from numpy.typing import NDArray
 
 from service.core._kernels import detect_kernel
 from service.core._kernels.crowd_kernel import mask_windows_kernel
-from service.core._kernels.detect_kernel import assess_kernel, measure_windows_kernel
+from service.core._kernels.detect_kernel import CLIPPED_PX, assess_kernel, measure_windows_kernel
 from service.core.targets.detect_types import (
     LOW_CONTRAST,
     MISSHAPEN,
@@ -54,7 +60,6 @@ f32, f64 = np.float32, np.float64
 # A target: its peak K_PEAK noise sigmas above its window's background (8 sigma: a textured
 # background's brightest specks stay below; it is the 40 DN that flash-lit carbon panels needed by hand).
 K_PEAK = 8.0
-MAX_SATURATED_PX = 2  # more saturated pixels than this reject a blob
 SHAPE_SIGMA = (3.0, 4.0)  # asymmetry and kurtosis may deviate this many times their noise ...
 SHAPE_FLOOR = (0.015, 0.05)  # ... plus this (pixel sampling): px, and unitless
 MIN_FLAT_TOP = 0.4  # a disk's own minor-axis variance exceeds 0.4 of the blurred blob's (0.7 at 2 px radius)
@@ -96,7 +101,7 @@ class Measured:
     sums: Array
     edge_uv: Array  # (n, 2) px: the centre fitted to the disk's edge, NaN where not asked or not held
     edge_sigma: Array
-    n_sat: NDArray[np.intp]
+    n_sat: NDArray[np.intp]  # pixels at the saturation level
     edge: NDArray[np.bool_]
     table: Array  # (NF, n): the kernel's output, whose rows the fields above are
 
@@ -207,7 +212,7 @@ def assess_constants(settings: DetectSettings) -> tuple[Array, NDArray[np.intp]]
             settings.max_area_px,
             settings.max_aspect,
             settings.min_fill,
-            MAX_SATURATED_PX,
+            np.inf if settings.max_saturated_px is None else settings.max_saturated_px,
             MIN_PLATEAU_B_PX,
             MIN_FLAT_TOP,
             *SHAPE_SIGMA,
@@ -237,6 +242,7 @@ def blobs_from(
         background_dn=meas.background[index],
         fill=fill[index],
         has_ring=np.zeros(index.size, dtype=bool) if has_ring is None else has_ring[index],
+        saturated=meas.n_sat[index] > CLIPPED_PX,
     )
 
 
@@ -254,4 +260,5 @@ def blobs_from_table(table: Array, sigma: Array, fill: Array) -> Blobs:
         background_dn=table[K.BACKGROUND],
         fill=fill,
         has_ring=np.zeros(sigma.size, dtype=bool),
+        saturated=table[K.N_SAT] > CLIPPED_PX,
     )

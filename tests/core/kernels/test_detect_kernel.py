@@ -104,7 +104,8 @@ def _measure_reference(P, img_win, h, seg, full):
     a0, c2, c4, c22 = circle.sum(), np.sum(du[circle] ** 2), np.sum(du[circle] ** 4), np.sum((du * dv)[circle] ** 2)
     sums = [a0, c2, c4, c22, np.sum(du[circle] ** 6), np.sum((du**4 * dv**2)[circle]), np.sum(du[circle] ** 8)]
     row = np.zeros(K.NF)
-    row[K.EDGE_UV :] = np.nan  # the edge fit, not asked for (its own reference: test_edge_kernel)
+    row[K.EDGE_UV : K.EDGE_SIGMA + 1] = np.nan  # the edge fit, not asked for (its own reference: test_edge_kernel)
+    row[K.N_SAT] = n_sat
     row[0:5] = [uc, vc, a, b, angle]
     row[K.FLUX], row[K.LEVEL], row[K.PEAK] = S, level, peak
     row[K.BACKGROUND], row[K.SB2] = b0 + b1 * uc + b2 * vc, sb2
@@ -196,7 +197,7 @@ def test_measured_windows_are_the_numpy_measurement(rng, dtype):
     np.testing.assert_array_equal(e[K.EDGE_SIGMA], sigma_ref)
     np.testing.assert_array_equal(e[K.EDGE_UV : K.EDGE_UV + 2][:, ok], uv_ref[ok].T)
     assert np.all(np.isnan(e[K.EDGE_UV : K.EDGE_UV + 2][:, ~ok])) and np.all(
-        np.isnan(with_fit[0][K.EDGE_UV :, ~placed])
+        np.isnan(with_fit[0][K.EDGE_UV : K.EDGE_SIGMA + 1, ~placed])
     )
     # no windows at all
     empty = measure_windows_kernel(
@@ -223,7 +224,7 @@ def _assess_reference(out, n_sat, edge, usable, contrast, limits, codes, h):
             codes[:4],
             -1,
         )
-        plateau = (levels < 0) & usable & ~edge & (b >= min_b)
+        plateau = (levels < 0) & usable & ~edge & (b >= min_b) & (n_sat <= K.CLIPPED_PX)
         k = np.median(out[K.K_SHOT][plateau]) / 0.918 if plateau.any() else 0.0
         sigma = np.sqrt(out[K.VAR_BASE] + k * out[K.VAR_PER_K])
         tr = 2 * out[K.VAR_PER_K] * S
@@ -267,7 +268,8 @@ def _assess_reference(out, n_sat, edge, usable, contrast, limits, codes, h):
     return reason, sigma, fill
 
 
-def test_assessment_is_the_numpy_decision(rng):
+@pytest.mark.parametrize("max_saturated_px", [None, 2])  # clipped disks measured (the default), rejected
+def test_assessment_is_the_numpy_decision(rng, max_saturated_px):
     img, full, centres, radii = _scene(rng, np.uint8, shape=(400, 500), n=90)
     img[rng.integers(0, 400, 300), rng.integers(0, 500, 300)] = 255  # hot pixels: saturated windows
     n = len(centres) + 10
@@ -279,7 +281,7 @@ def test_assessment_is_the_numpy_decision(rng):
     seg = np.full(n, 0.03 * full)
     buf, boff = np.zeros(1, np.float32), np.full(n, -1, dtype=np.intp)
     out, n_sat, edge = measure_windows_kernel(img, cu, cv, half, placed, seg, float(full), buf, boff, False)
-    limits, codes = assess_constants(DetectSettings())
+    limits, codes = assess_constants(DetectSettings(max_saturated_px=max_saturated_px))
     contrast = np.full(n, 0.08 * full)
     usable = placed & (rng.random(n) < 0.9)
     reason, sigma, fill = assess_kernel(out, n_sat, edge, usable, contrast, limits, codes)
@@ -290,7 +292,10 @@ def test_assessment_is_the_numpy_decision(rng):
     # square roots and ratios of the same numbers: relative round-off
     np.testing.assert_allclose(sigma[placed], sigma_r, rtol=1e-12, atol=0, equal_nan=True)
     np.testing.assert_allclose(fill[placed], fill_r, rtol=1e-12, atol=1e-15)
-    assert (reason_r == -1).sum() > 20 and len(set(reason_r) - {-1}) >= 3  # accepted, and several reasons
+    # accepted, and several reasons (saturated among them only when asked for)
+    assert (reason_r == -1).sum() > 20 and len(set(reason_r) - {-1}) >= (2 if max_saturated_px is None else 3)
+    # windows with hot pixels: rejected as saturated only when asked; measured (and flagged) else
+    assert (codes[0] in reason_r) == (max_saturated_px is not None) and (n_sat[placed] > 2).any()
     # none on a plateau (no usable window): no shot noise, the background's alone
     reason0, sigma0, _ = assess_kernel(out, n_sat, edge, np.zeros(n, bool), contrast, limits, codes)
     np.testing.assert_allclose(sigma0[placed], np.sqrt(out[K.VAR_BASE][placed]), rtol=1e-12, equal_nan=True)
