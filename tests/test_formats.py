@@ -111,6 +111,10 @@ def test_camera_accepts_whole_floats_for_the_image_size_and_one_number_for_squar
         (("targets", 1, "xyz"), [1.0, 0.0], "target 'P101' has a malformed 'xyz'"),
         (("targets", 1, "id"), ["P", 101], "target #1 has a malformed 'id'"),
         (("targets", 1, "id"), "", "target #1 has a malformed 'id'"),
+        (("targets", 1, "normal"), [0.0, 1.0], "target 'P101' has a malformed 'normal'"),
+        (("targets", 1, "normal"), [0.0, "1", 0.0], "target 'P101' has a malformed 'normal'"),
+        (("targets", 1, "normal"), [0.0, 0.0, 0.0], "target 'P101' has a zero 'normal'"),
+        (("targets", 1, "normal"), [10**400, 0.0, 0.0], "target 'P101' normal must be a number in [-1e+06, 1e+06]"),
     ],
 )
 def test_field_refuses_bad_values_naming_the_target(key, value, needle):
@@ -123,6 +127,21 @@ def test_field_accepts_a_whole_float_code_and_a_null_diameter():
         _with(_with(FIELD, ("targets", 1, "code"), 8.0), ("targets", 1, "diameter_mm"), None)
     )
     assert field.codes[1] == 8 and math.isnan(field.diameters_mm[1])
+
+
+def test_field_normals_are_read_made_unit_and_written_back():
+    # a field on a floor and a wall: each target's plane, the side its print faces
+    plain = formats.field_from_json(FIELD)
+    assert plain.normals is None and not plain.has_normals  # no "normal": one plane, as before
+    walled = formats.field_from_json(_with(FIELD, ("targets", 1, "normal"), [0.0, -2.0, 0.0]))
+    assert walled.has_normals and np.allclose(walled.normals, [[0, 0, 1], [0, -1, 0]])
+    assert walled.normal_rows(np.array([1])).tolist() == [[0.0, -1.0, 0.0]]
+    again = formats.field_from_json(json.loads(json.dumps(formats.field_to_json(walled))))
+    assert np.allclose(again.normals, walled.normals) and again.ids == walled.ids
+    # every normal +z: the field is on one plane, nothing to do per target
+    flat = formats.field_from_json(_with(FIELD, ("targets", 0, "normal"), [0.0, 0.0, 3.0]))
+    assert flat.normals is not None and not flat.has_normals and flat.normal_rows(np.array([0, 1])) is None
+    assert "normal" not in json.dumps(formats.field_to_json(plain))
 
 
 @pytest.mark.parametrize("row", ["P1,1,2,3,7.5,6", "P1,1,2,3,7,six", "P1,1,2,inf"])

@@ -83,6 +83,23 @@ def test_eccentricity_correction_removes_the_perspective_bias(cell):
     assert rms[True] < 0.6 * rms[False]
 
 
+def test_targets_facing_away_are_not_predicted(cell):
+    # a field with normals: a target on the far side of a plate, or seen edge-on, cannot be measured,
+    # and predicted it could take a visible target's match
+    from service.core.targets.field import Field
+    from service.core.targets.identify import project_field
+
+    camera, _ = cell
+    normals = np.array([[0, 0, 1], [0, 0, -1], [1, 0, 0], [0, 0.5, 1]], dtype=float)
+    xyz = np.array([[0, 0, 0], [10, 0, -5], [-20, 10, 0], [20, -10, 0]], dtype=float)
+    field = Field("plate", ("A", "B", "C", "D"), xyz, np.full(4, -1), np.full(4, 6.0), normals)
+    T = reference_pose(view_angle_deg=90.0, distance_mm=1000.0)
+    rows, uv = project_field(camera, field, T)
+    assert rows.tolist() == [0, 3] and uv.shape == (2, 2)
+    one_plane = Field("plate", field.ids, xyz, field.codes, field.diameters_mm)  # no normals: every one
+    assert project_field(camera, one_plane, T)[0].tolist() == [0, 1, 2, 3]
+
+
 def test_roi_tracking_follows_a_motion_and_falls_back_when_targets_are_lost(cell):
     camera, field = cell
     rng = np.random.default_rng(5)

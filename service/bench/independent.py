@@ -14,6 +14,10 @@ conventions and possibly their mistakes. Here the sheet posecell prints (``posec
    ``background_dn`` plate, falling off towards the image corners), the optics' blur (a Gaussian),
    shot noise (Poisson, ``electrons_per_dn``) and read noise, quantised to 8 bits.
 
+A cell's targets are seldom on one plane: the *corner* views image two sheets, the floor's and a
+wall's standing at its far edge (:data:`CORNER`), each through the same chain, the nearer surface
+hiding the farther per sub-pixel; its field gives each target's normal.
+
 posecell then measures these frames with its defaults, the camera given as the Brown/Fraser model
 fitted to OpenCV's (:func:`~service.core.geometry.opencv_compat.brown_from_opencv`, as a user of
 an OpenCV calibration would), and the field as the sheet's field.json. The truth is the pose the
@@ -95,10 +99,11 @@ def sheet(options: SheetOptions = SHEET) -> tuple[NDArray[np.float32], Field]:
     return grey.astype(np.float32) / 255.0, field_
 
 
-def _sheet_map(T_camera_field: Array, options: SheetOptions) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Per camera sub-pixel, the raster's (column, row) that it sees, for ``cv2.remap``: exact at
-    the centre of every MAP_STEP x MAP_STEP block of sub-pixels, bilinear between (``cv2.resize``
-    puts its source samples there)."""
+def _face_maps(T_camera_face: Array, options: SheetOptions) -> tuple[NDArray[np.float32], ...]:
+    """Per camera sub-pixel, the raster's (column, row) that it sees on the sheet ``options`` lying in
+    the x-y plane of the frame ``T_camera_face`` locates, for ``cv2.remap``, and the ray's distance to
+    that plane (in units of its z): exact at the centre of every MAP_STEP x MAP_STEP block of
+    sub-pixels, bilinear between (``cv2.resize`` puts its source samples there)."""
     q = OVERSAMPLE
     us = (np.arange(WIDTH * q // MAP_STEP) + 0.5) * MAP_STEP - 0.5
     vs = (np.arange(HEIGHT * q // MAP_STEP) + 0.5) * MAP_STEP - 0.5
@@ -109,29 +114,55 @@ def _sheet_map(T_camera_field: Array, options: SheetOptions) -> tuple[NDArray[np
     # the stubs do not admit None for R and P
     n = cv2.undistortPointsIter(uv, K_OPENCV, DIST_OPENCV, None, None, criteria).reshape(-1, 2)  # type: ignore[call-overload]
     # the ray (x, y, 1) of the camera onto the sheet's plane z = 0
-    R, t = T_camera_field[:3, :3], T_camera_field[:3, 3]
-    rays = np.concatenate([n, np.ones((len(n), 1))], axis=1) @ R  # each ray in the field: R' ray
+    R, t = T_camera_face[:3, :3], T_camera_face[:3, 3]
+    rays = np.concatenate([n, np.ones((len(n), 1))], axis=1) @ R  # each ray in the face's frame: R' ray
     origin = -R.T @ t
     s = -origin[2] / rays[:, 2]
     p = origin[None, :2] + s[:, None] * rays[:, :2]
     col = (p[:, 0] + options.width_mm / 2) * RASTER_PX_PER_MM - 0.5
     row = (options.height_mm / 2 - p[:, 1]) * RASTER_PX_PER_MM - 0.5
     size = (WIDTH * q, HEIGHT * q)
-    map_col, map_row = (
-        cv2.resize(a.reshape(U.shape).astype(np.float32), size, interpolation=cv2.INTER_LINEAR) for a in (col, row)
+    return tuple(
+        cv2.resize(a.reshape(U.shape).astype(np.float32), size, interpolation=cv2.INTER_LINEAR) for a in (col, row, s)
     )
-    return map_col, map_row
+
+
+Faces = tuple[tuple[SheetOptions, Array], ...]  # each sheet and T_field_face, the sheet in its x-y plane
+
+
+def _radiance(T_camera_field: Array, faces: Faces) -> Array:
+    """Per camera pixel, the mean over its sub-pixels of the print each one sees (0..1): of each sheet
+    the nearest along the ray; a sheet seen from behind shows its dark back."""
+    sub = np.zeros((HEIGHT * OVERSAMPLE, WIDTH * OVERSAMPLE), np.float32)
+    nearest = np.full(sub.shape, np.inf, np.float32)
+    for options, T_field_face in faces:
+        raster, _ = sheet(options)
+        T_camera_face = T_camera_field @ T_field_face
+        map_col, map_row, dist = _face_maps(T_camera_face, options)
+        rows, cols = raster.shape
+        on = (dist > 0) & (dist < nearest) & (map_col > -0.5) & (map_col < cols - 0.5)
+        on &= (map_row > -0.5) & (map_row < rows - 0.5)
+        # its printed face (+z) towards the camera: the camera on the + side of its plane
+        front = float(T_camera_face[:3, 2] @ -T_camera_face[:3, 3]) > 0
+        seen = cv2.remap(raster, map_col, map_row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        sub[on] = seen[on] if front else 0.0
+        nearest[on] = dist[on]
+    return cv2.resize(sub, (WIDTH, HEIGHT), interpolation=cv2.INTER_AREA).astype(np.float64)
 
 
 def image_of_sheet(
     T_field_camera: Array, light: Light, rng: np.random.Generator, options: SheetOptions = SHEET
 ) -> SheetFrame:
     """The sheet seen from ``T_field_camera`` (4, 4), mm, in the light ``light``."""
-    raster, field_ = sheet(options)
+    return image_of_faces(T_field_camera, light, rng, ((options, np.eye(4)),), sheet(options)[1])
+
+
+def image_of_faces(
+    T_field_camera: Array, light: Light, rng: np.random.Generator, faces: Faces, field_: Field
+) -> SheetFrame:
+    """The sheets ``faces`` (whose targets ``field_`` lists) seen from ``T_field_camera`` (4, 4), mm."""
     T_camera_field = inv_T(T_field_camera)
-    map_col, map_row = _sheet_map(T_camera_field, options)
-    sub = cv2.remap(raster, map_col, map_row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-    radiance = cv2.resize(sub, (WIDTH, HEIGHT), interpolation=cv2.INTER_AREA).astype(np.float64)
+    radiance = _radiance(T_camera_field, faces)
     v, u = np.mgrid[0:HEIGHT, 0:WIDTH]
     r2 = ((u - K_OPENCV[0, 2]) ** 2 + (v - K_OPENCV[1, 2]) ** 2) / (K_OPENCV[0, 2] ** 2 + K_OPENCV[1, 2] ** 2)
     signal = light.background_dn + (light.peak_dn - light.background_dn) * radiance * (1.0 - light.falloff * r2)
@@ -148,6 +179,39 @@ def image_of_sheet(
     return SheetFrame(image, T_field_camera, list(field_.ids), uv.reshape(-1, 2), radius_px)
 
 
+# A corner of a cell: the floor's sheet and a wall's (20 coded targets, codes 31-50, 80 uncoded)
+# standing upright on the floor sheet's far edge (y = +300 mm), printed face towards -y
+WALL = SheetOptions(
+    width_mm=720.0, height_mm=420.0, n_coded=20, n_uncoded=80, first_code=31, name="wall", title="posecell wall"
+)
+_UPRIGHT = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 300.0], [0.0, 1.0, 0.0, WALL.height_mm / 2], [0, 0, 0, 1]])
+CORNER: Faces = ((SHEET, np.eye(4)), (WALL, _UPRIGHT))
+
+
+@lru_cache(maxsize=2)
+def corner_field(with_normals: bool = True) -> Field:
+    """The field of :data:`CORNER`: each sheet's targets in the field frame (the wall's uncoded ones
+    renamed ``W<n>``), with each target's normal (``with_normals`` False: without, as a field on one
+    plane would be given)."""
+    ids: list[str] = []
+    xyz, codes, diameters, normals = [], [], [], []
+    for k, (options, T) in enumerate(CORNER):
+        f = sheet(options)[1]
+        ids += [i if k == 0 or i.startswith("C") else "W" + i[1:] for i in f.ids]
+        xyz.append(f.xyz @ T[:3, :3].T + T[:3, 3])
+        codes.append(f.codes)
+        diameters.append(f.diameters_mm)
+        normals.append(np.tile(T[:3, 2], (len(f), 1)))
+    return Field(
+        "corner",
+        tuple(ids),
+        np.vstack(xyz),
+        np.concatenate(codes),
+        np.concatenate(diameters),
+        np.vstack(normals) if with_normals else None,
+    )
+
+
 @dataclass(frozen=True)
 class View:
     """A row of the bench: the camera's view of the sheet and the light."""
@@ -156,6 +220,7 @@ class View:
     view_deg: float
     distance_mm: float
     light: Light = Light()
+    corner: bool = False  # the floor's and a wall's sheets (CORNER), looked at near their edge
 
 
 VIEWS = (
@@ -168,15 +233,18 @@ VIEWS = (
     # the ring light's return at twice and four times full scale: most disks' tops clipped at 255
     View("60 deg, 1 m, overexposed 2x", 60.0, 1000.0, Light(peak_dn=2 * Light.peak_dn)),
     View("60 deg, 1 m, overexposed 4x", 60.0, 1000.0, Light(peak_dn=4 * Light.peak_dn)),
+    View("corner: floor and wall, 60 deg, 1.3 m", 60.0, 1300.0, corner=True),
 )
+CORNER_LOOK_MM = (0.0, 250.0, 60.0)  # where the corner views look: near the wall's foot
 
 
 def frames_of(view: View, n: int, seed: int) -> list[SheetFrame]:
     """``n`` frames of ``view``: the camera rolled, turned and aimed a little differently each time."""
     rng = np.random.default_rng(seed)
+    centre = CORNER_LOOK_MM if view.corner else (0.0, 0.0, 0.0)
     out = []
     for _ in range(n):
-        look = (float(rng.uniform(-40, 40)), float(rng.uniform(-30, 30)), 0.0)
+        look = (centre[0] + float(rng.uniform(-40, 40)), centre[1] + float(rng.uniform(-30, 30)), centre[2])
         T = reference_pose(
             view.view_deg,
             view.distance_mm * float(rng.uniform(0.97, 1.03)),
@@ -184,15 +252,24 @@ def frames_of(view: View, n: int, seed: int) -> list[SheetFrame]:
             azimuth_deg=float(rng.uniform(-30, 30)),
             look_at_mm=look,
         )
-        out.append(image_of_sheet(T, view.light, rng))
+        out.append(_image(T, view.light, rng, view.corner))
     return out
 
 
-def path_frames(n: int, seed: int, view_deg: float = 60.0, light: Light = Light()) -> list[SheetFrame]:
+def _image(T_field_camera: Array, light: Light, rng: np.random.Generator, corner: bool) -> SheetFrame:
+    if corner:
+        return image_of_faces(T_field_camera, light, rng, CORNER, corner_field())
+    return image_of_sheet(T_field_camera, light, rng)
+
+
+def path_frames(
+    n: int, seed: int, view_deg: float = 60.0, light: Light = Light(), corner: bool = False
+) -> list[SheetFrame]:
     """``n`` frames 4 ms apart along ``posecell bench speed``'s path (a robot at ~100 mm/s), views
-    ``view_deg`` +- 10 deg: a sequence for ROI tracking."""
+    ``view_deg`` +- 10 deg: a sequence for ROI tracking (``corner``: of :data:`CORNER`, from 1.3 m)."""
     rng = np.random.default_rng(seed)
-    return [image_of_sheet(T, light, rng) for T in path_poses(n, view_deg)]
+    poses = path_poses(n, view_deg, 1300.0, CORNER_LOOK_MM) if corner else path_poses(n, view_deg)
+    return [_image(T, light, rng, corner) for T in poses]
 
 
 @dataclass
@@ -296,10 +373,11 @@ def _rms(e: list[Array]) -> str:
     return f"{float(np.sqrt(np.mean(np.square(e)))):.4f}" if e else "—"
 
 
-def _tracking(fit_camera: Any, field_: Field, n: int, seed: int) -> list[str]:
-    """The ROI tracking table: a path of ``n`` frames, 4 ms apart, tracked by posecell as the service
-    tracks it (the first frame in full) and measured by the peer frame by frame."""
-    frames = path_frames(n, seed)
+def _tracking(fit_camera: Any, n: int, seed: int, corner: bool = False) -> str:
+    """A row of the ROI tracking table: a path of ``n`` frames, 4 ms apart, tracked by posecell as the
+    service tracks it (the first frame in full) and measured by the peer frame by frame."""
+    frames = path_frames(n, seed, corner=corner)
+    field_ = corner_field() if corner else sheet()[1]
     tracker = FrameMeasurer(fit_camera, field_)
     tracker.measure(frames[0].image)  # warm-up: first calls allocate and fill caches
     tracker.reset()
@@ -315,14 +393,12 @@ def _tracking(fit_camera: Any, field_: Field, n: int, seed: int) -> list[str]:
             measure_peer(field_, frame, peer)
     p99 = f"{float(np.percentile(roi.ms, 99)):.2f}" if roi.ms else "—"
     ratio = f"{np.median(peer.ms) / np.median(roi.ms):.2f}" if roi.ms and peer.ms else "—"
-    return [
-        "| sequence | frames | tracked | ROI ms median | ROI ms p99 | targets named / whole in view | named wrongly | "
-        "centre RMS px | pose error mm (median) | failed | peer ms median | peer pose error mm | × peer speed |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-        f"| 60 ± 10 deg, ~1 m, 4 ms apart | {n} | {len(roi.ms)} | {_med(roi.ms, '.3f')} | {p99} | "
-        f"{roi.found} / {roi.visible} | {roi.wrong} | {_rms(roi.centre_err)} | {_med(roi.pose_mm, '.4f')} | "
-        f"{roi.failed} | {_med(peer.ms, '.2f')} | {_med(peer.pose_mm, '.4f')} | {ratio} |",
-    ]
+    name = "corner: floor and wall, 60 ± 10 deg, ~1.3 m" if corner else "60 ± 10 deg, ~1 m"
+    return (
+        f"| {name}, 4 ms apart | {n} | {len(roi.ms)} | {_med(roi.ms, '.3f')} | {p99} | "
+        f"{roi.found} / {roi.visible} | {roi.coded} | {roi.wrong} | {_rms(roi.centre_err)} | "
+        f"{_med(roi.pose_mm, '.4f')} | {roi.failed} | {_med(peer.ms, '.2f')} | {_med(peer.pose_mm, '.4f')} | {ratio} |"
+    )
 
 
 def run(n_frames: int = 5, seed: int = 1) -> str:
@@ -330,8 +406,7 @@ def run(n_frames: int = 5, seed: int = 1) -> str:
     full frame) and by the peer, in turn; then a path of ``6 n_frames`` frames tracked (ROI)."""
     cv2.setNumThreads(1)
     fit = brown_from_opencv(K_OPENCV, DIST_OPENCV, WIDTH, HEIGHT, (PIXEL_MM, PIXEL_MM))
-    _, field_ = sheet()
-    measurer = FrameMeasurer(fit.camera, field_)
+    measurers = {False: FrameMeasurer(fit.camera, sheet()[1]), True: FrameMeasurer(fit.camera, corner_field())}
     rows = [
         "| view | frames | targets named / whole in view | coded named | named wrongly | centre RMS px | "
         "pose error mm (median) | pose error deg (median) | failed | ms median | "
@@ -340,6 +415,7 @@ def run(n_frames: int = 5, seed: int = 1) -> str:
     ]
     for k, view in enumerate(VIEWS):
         frames = frames_of(view, n_frames, seed + k)
+        measurer, field_ = measurers[view.corner], measurers[view.corner].field
         measurer.measure(frames[0].image)  # warm-up: first calls allocate and fill caches
         ours, peer = Score(), Score()
         for i, frame in enumerate(frames):  # who goes first alternates
@@ -356,19 +432,26 @@ def run(n_frames: int = 5, seed: int = 1) -> str:
         )
     rows += [
         "",
-        f"posecell's printed sheet ({len(field_)} targets) rasterised by cairo and imaged through OpenCV's "
+        f"posecell's printed sheet ({len(sheet()[1])} targets) rasterised by cairo and imaged through OpenCV's "
         f"lens model (K, k1 k2 p1 p2 k3 = {', '.join(f'{d:g}' for d in DIST_OPENCV)}), {OVERSAMPLE}x"
         f"{OVERSAMPLE} sub-pixels a pixel, blur, shot and read noise (`service/bench/independent.py`); posecell "
         f"with its defaults and the Brown/Fraser model fitted to OpenCV's ({fit.rms_px:.4f} px RMS, "
         f"{fit.max_px:.4f} max), full frames; the peer with OpenCV's own model, given the identities. "
         "Centres against the true projections of the targets' centres (a point's, not a blob's: the "
         "perspective shift of a disk's image, < 0.01 px here, is in the figure); *whole in view*: the disk, "
-        "as large as head-on, 2 px clear of the image border (a foreshortened one nearer is named too).",
+        "as large as head-on, 2 px clear of the image border (a foreshortened one nearer is named too). "
+        f"*Corner*: that sheet on the floor and a {WALL.width_mm:.0f} x {WALL.height_mm:.0f} mm sheet "
+        f"({len(sheet(WALL)[1])} targets) standing on its far edge, the field giving each target's normal.",
         "",
         "ROI tracking on the same kind of images: a path like `posecell bench speed`'s, the frames 4 ms apart "
         "(250 Hz), posecell with its defaults (the first frame in full, then windows about the predicted "
         "targets), the peer measuring every frame in full:",
         "",
-        *_tracking(fit.camera, field_, 6 * n_frames, seed + 100),
+        "| sequence | frames | tracked | ROI ms median | ROI ms p99 | targets named / whole in view | coded named | "
+        "named wrongly | centre RMS px | pose error mm (median) | failed | peer ms median | peer pose error mm | "
+        "× peer speed |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        _tracking(fit.camera, 6 * n_frames, seed + 100),
+        _tracking(fit.camera, 6 * n_frames, seed + 200, corner=True),
     ]
     return "\n".join(rows)

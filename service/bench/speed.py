@@ -34,19 +34,23 @@ from service.sim.scene import reference_camera, reference_field, reference_pose
 Array = NDArray[np.float64]
 
 
-def path_poses(n: int, view_deg: float = 80.0) -> list[Array]:
+def path_poses(
+    n: int, view_deg: float = 80.0, distance_mm: float = 1000.0, centre_mm: tuple[float, float, float] = (0, 0, 0)
+) -> list[Array]:
     """``n`` poses ``T_field_camera`` (4, 4) 4 ms apart along a smooth path (a robot at ~100 mm/s):
-    views ``view_deg`` +- 10 deg (90: head-on), ~0.9-1.1 m from the plate."""
+    views ``view_deg`` +- 10 deg (90: head-on), ``distance_mm`` +- 10 % from a point within 40 mm of
+    ``centre_mm`` (field)."""
     out = []
+    cx, cy, cz = centre_mm
     for k in range(n):
         a = 0.01 * k  # rad along the path: ~0.4 mm and ~0.1 deg per frame
         out.append(
             reference_pose(
                 view_angle_deg=view_deg + 10.0 * np.sin(a),
-                distance_mm=1000.0 + 100.0 * np.sin(2 * a),
+                distance_mm=distance_mm * (1.0 + 0.1 * np.sin(2 * a)),
                 roll_deg=20.0 * np.sin(a),
                 azimuth_deg=30.0 * np.sin(a),
-                look_at_mm=(40.0 * np.cos(a), 30.0 * np.sin(a), 0.0),
+                look_at_mm=(cx + 40.0 * np.cos(a), cy + 30.0 * np.sin(a), cz),
             )
         )
     return out

@@ -41,7 +41,14 @@ from service.core.targets.decode import warm_up as decode_warm_up
 from service.core.targets.detect import Blobs, DetectSettings, detect_blobs, measure_windows
 from service.core.targets.detect_types import DTYPE_MAX
 from service.core.targets.field import Field
-from service.core.targets.identify import Matches, eccentricity_px, match_coded, match_predicted, project_field
+from service.core.targets.identify import (
+    Matches,
+    eccentricity_px,
+    match_coded,
+    match_predicted,
+    plane_axes,
+    project_field,
+)
 
 Array = NDArray[np.float64]
 
@@ -386,6 +393,13 @@ class FrameMeasurer:
         self._radius_c = self._radius_mm * camera.c_mm
         self._coded = np.ascontiguousarray(field.codes >= 0)
         self._f_px = float(camera.c_mm / camera.mean_pixel_size_mm)  # the ring masks' pinhole
+        # each target's in-plane axes (field rows, 3), for the ring masks: its own plane's, or the field's x, y
+        n = len(field)
+        self._plane_axes = (
+            plane_axes(field.normals)
+            if field.has_normals and field.normals is not None
+            else (np.tile([1.0, 0.0, 0.0], (n, 1)), np.tile([0.0, 1.0, 0.0], (n, 1)))
+        )
 
     def reset(self) -> None:
         """Forget the pose history: the next frame is measured in full."""
@@ -429,7 +443,7 @@ class FrameMeasurer:
         if s.correct_eccentricity and T_init is not None:
             # the offsets are hundredths of a pixel and vary slowly with the pose, so the
             # approximate pose is good enough and saves a second adjustment
-            uv = uv - eccentricity_px(self.camera, p, self._radius_mm[rows], T_init, uv)
+            uv = uv - eccentricity_px(self.camera, p, self._radius_mm[rows], T_init, uv, self.field.normal_rows(rows))
         res = resect(self.camera, p, uv, sigma_px=s.sigma_px, T_field_camera_init=T_init)
         clock.lap("resect")
         if res.sigma0_px > s.max_sigma0_px:
@@ -623,6 +637,7 @@ class FrameMeasurer:
             np.ascontiguousarray(T_camera_field[:3, :3]),
             np.ascontiguousarray(T_camera_field[:3, 3]),
             self.field.xyz,
+            *self._plane_axes,
             self._radius_mm,
             self._coded,
             rows,

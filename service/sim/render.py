@@ -529,8 +529,9 @@ def render_frame(
     rng : np.random.Generator or None
         Source of shot and read noise; None renders noise-free (deterministic).
     normals_field : (N, 3) float or None
-        Plane normal of each target (any length); default field +z. The target
-        is seen only from the side its normal points to.
+        Plane normal of each target (any length); default the field's own
+        (``field.normals``), else +z. The target is seen only from the side its
+        normal points to.
 
     Returns
     -------
@@ -539,6 +540,7 @@ def render_frame(
         at least partly in it.
     """
     T_field_camera = check_T(T_field_camera, "T_field_camera").copy()
+    normals_field = field.normals if normals_field is None else normals_field
     fp = _footprint(camera, field, T_field_camera, normals_field, settings.supersample)
     tg, boxed = fp.targets, fp.boxed
     level_dn = (

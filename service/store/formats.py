@@ -238,6 +238,7 @@ def field_from_json(data: Any, source: str = "field") -> Field:
     xyz: list[list[float]] = []
     codes: list[int] = []
     diam: list[float] = []
+    normals: list[list[float]] = []
     reject_non_finite(data, source)
     for k, t in enumerate(data["targets"]):
         if not isinstance(t, dict) or "id" not in t or "xyz" not in t:
@@ -259,6 +260,13 @@ def field_from_json(data: Any, source: str = "field") -> Field:
             if d is None
             else _number(source, f"{where} diameter_mm", d, 0.0, MAX_DIAMETER_MM, "mm", lo_open=True)
         )
+        nrm = t.get("normal", [0.0, 0.0, 1.0])
+        if not isinstance(nrm, list | tuple) or len(nrm) != 3 or not all(_is_number(v) for v in nrm):
+            raise FormatError(f"{source}: {where} has a malformed 'normal' (want 3 finite numbers), not {nrm!r}")
+        normal = [_number(source, f"{where} normal", v, -1e6, 1e6) for v in nrm]
+        if not math.hypot(*normal) > 1e-9:
+            raise FormatError(f"{source}: {where} has a zero 'normal' (want the direction its print faces)")
+        normals.append(normal)
     try:
         return Field(
             name=str(data.get("name", Path(source).stem)),
@@ -266,6 +274,8 @@ def field_from_json(data: Any, source: str = "field") -> Field:
             xyz=np.array(xyz, dtype=np.float64).reshape(-1, 3),
             codes=np.array(codes, dtype=np.int64),
             diameters_mm=np.array(diam, dtype=np.float64),
+            # without any "normal" the field lies in its x-y plane: no normals kept
+            normals=np.array(normals).reshape(-1, 3) if any("normal" in t for t in data["targets"]) else None,
         )
     except ValueError as e:
         raise FormatError(f"{source}: {e}") from None
@@ -280,6 +290,8 @@ def field_to_json(field: Field) -> dict[str, Any]:
         t["xyz"] = [round(float(v), 6) for v in field.xyz[i]]
         if math.isfinite(field.diameters_mm[i]):
             t["diameter_mm"] = float(field.diameters_mm[i])
+        if field.normals is not None:
+            t["normal"] = [round(float(v), 9) for v in field.normals[i]]
         targets.append(t)
     return {"name": field.name, "targets": targets}
 

@@ -35,14 +35,15 @@ OWN_RADII = 1.5
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def ring_masks_kernel(R_cf, t_cf, xyz, radius_mm, coded, rows, uv_pred, f_px, half, ring_inner):
+def ring_masks_kernel(R_cf, t_cf, xyz, ex, ey, radius_mm, coded, rows, uv_pred, f_px, half, ring_inner):
     """Per target ``rows`` (n,) of the field, the own region (n, 5) ``(x0, y0, Q_uu, Q_uv, Q_vv)``
     that :func:`~service.core._kernels.crowd_kernel.mask_windows_kernel` keeps of its window: for a
     ``coded`` (per field row) one, its disk's ellipse predicted by the pose ``R_cf``, ``t_cf``
     (camera from field, mm) and grown to OWN_RADII disk radii, about the prediction ``uv_pred``
     (n, 2) px less the window's centre (the rounded prediction); NaN rows for the others. The
     ellipse is the projection's first-order (affine) image of the disk (radius ``radius_mm`` per
-    field row, in the field's x-y plane) through a pinhole of ``f_px`` px; the lens's distortion
+    field row, in the plane of its in-plane unit axes ``ex``, ``ey`` (field rows, 3): the field's x
+    and y for a field on one plane) through a pinhole of ``f_px`` px; the lens's distortion
     changes it by far less than the gap it has to fit in. In an oblique view the ring comes within
     twice the disk's foreshortened radius of its centre, inside any window that holds the disk; a
     ring (from ``ring_inner`` disk radii) that stays 2 px (its blur) beyond the window of half size
@@ -59,9 +60,15 @@ def ring_masks_kernel(R_cf, t_cf, xyz, radius_mm, coded, rows, uv_pred, f_px, ha
         if not Z > 0:
             continue
         x, y, g = X / Z, Y / Z, f_px / Z * radius_mm[j] * OWN_RADII
-        # the image of the disk's in-plane axes (field x and y), px: A maps the unit circle onto it
-        a00, a01 = g * (R_cf[0, 0] - x * R_cf[2, 0]), g * (R_cf[0, 1] - x * R_cf[2, 1])
-        a10, a11 = g * (R_cf[1, 0] - y * R_cf[2, 0]), g * (R_cf[1, 1] - y * R_cf[2, 1])
+        # the disk's in-plane axes in the camera, and their image, px: A maps the unit circle onto it
+        c0 = R_cf[0, 0] * ex[j, 0] + R_cf[0, 1] * ex[j, 1] + R_cf[0, 2] * ex[j, 2]
+        c1 = R_cf[1, 0] * ex[j, 0] + R_cf[1, 1] * ex[j, 1] + R_cf[1, 2] * ex[j, 2]
+        c2 = R_cf[2, 0] * ex[j, 0] + R_cf[2, 1] * ex[j, 1] + R_cf[2, 2] * ex[j, 2]
+        d0 = R_cf[0, 0] * ey[j, 0] + R_cf[0, 1] * ey[j, 1] + R_cf[0, 2] * ey[j, 2]
+        d1 = R_cf[1, 0] * ey[j, 0] + R_cf[1, 1] * ey[j, 1] + R_cf[1, 2] * ey[j, 2]
+        d2 = R_cf[2, 0] * ey[j, 0] + R_cf[2, 1] * ey[j, 1] + R_cf[2, 2] * ey[j, 2]
+        a00, a01 = g * (c0 - x * c2), g * (d0 - x * d2)
+        a10, a11 = g * (c1 - y * c2), g * (d1 - y * d2)
         # x' (A A')^-1 x <= 1: (A A')^-1 = (A^-1)' A^-1
         det = a00 * a11 - a01 * a10
         if not abs(det) > 1e-12:
@@ -115,6 +122,8 @@ def warm_up() -> None:
         np.eye(3),
         np.array([0.0, 0.0, 1000.0]),
         np.zeros((3, 3)),
+        np.eye(3),
+        np.eye(3),
         np.full(3, 5.0),
         np.ones(3, dtype=np.bool_),
         rows,

@@ -410,7 +410,7 @@ def calibrate_camera(
     say(f"adjusting {len(kept_images)} images, {len(net.ids)} targets, {len(uv)} observations")
     sol = solve_network(network, reject_outliers=reject_outliers, progress=progress)
     _check_determined(sol, free_t, geometry, camera)
-    return _result(sol, network, net, kept_images, free_t, datum, warnings, field.name)
+    return _result(sol, network, net, kept_images, free_t, datum, warnings, field)
 
 
 def _check_determined(
@@ -444,7 +444,7 @@ def _result(
     free_t: tuple[str, ...],
     datum: Datum,
     warnings: list[str],
-    name: str,
+    field: Field,
 ) -> BundleResult:
     model, Q, s0 = sol.model, sol.Q, sol.sigma0
     cov_scale = s0 * s0
@@ -488,7 +488,7 @@ def _result(
         warnings.append(
             f"target {net.ids[i]!r} has fewer than two rays (after rejections): not adjusted, left out of the field"
         )
-    refined = network_field(name, net, sol.points)
+    refined = network_field(field.name, net, sol.points, field)
     has_xyz = adjusted_points(sol.points)  # the rows of refined
     geometry = network_geometry(sol.points[sol.point_used], [im.T_field_camera for im in images])
     if geometry["roll_spread_deg"] < MIN_ROLL_SPREAD_DEG and {"x0_mm", "y0_mm", "B1", "B2"} & set(free_t):

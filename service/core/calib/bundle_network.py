@@ -285,14 +285,20 @@ def adjusted_points(points: Array) -> NDArray[np.bool_]:
     return np.asarray(np.all(np.isfinite(points), axis=1))
 
 
-def network_field(name: str, net: Network, points: Array) -> Field:
+def network_field(name: str, net: Network, points: Array, given: Field | None = None) -> Field:
     """The network's points ``points`` (N, 3) mm that have coordinates (:func:`adjusted_points`) as a
-    field (new points with code -1)."""
+    field (new points with code -1); the normals of the ``given`` field's targets carried over (a new
+    point's: +z)."""
     keep = adjusted_points(points)
+    ids = tuple(i for i, k in zip(net.ids, keep, strict=True) if k)
+    normals = None
+    if given is not None and given.normals is not None:
+        normals = np.array([given.normals[given.index[i]] if i in given.index else (0.0, 0.0, 1.0) for i in ids])
     return Field(
         name=name,
-        ids=tuple(i for i, k in zip(net.ids, keep, strict=True) if k),
+        ids=ids,
         xyz=points[keep],
         codes=np.array(net.codes, dtype=np.int64)[keep],
         diameters_mm=np.array(net.diameters)[keep],
+        normals=normals.reshape(-1, 3) if normals is not None else None,
     )

@@ -435,7 +435,7 @@ def calibrate_rig(
         n_rejected=np.bincount(camera[~inl], minlength=K),
         epochs=tuple(epochs[e] for e in keep_epoch),
         T_field_rig=np.array([inv_T(T_from_params(v)) for v in sol.stations]),
-        field=network_field(field.name, net, sol.points),
+        field=network_field(field.name, net, sol.points, field),
         sigma_xyz_mm=point_sigmas(sol, net_in.point_free)[adjusted_points(sol.points)],
         warnings=tuple(warnings),
         extra={"free_interior": list(free_t), "field_fixed": field_fixed},

@@ -1,4 +1,5 @@
-"""The target field: target ids, coordinates in the field frame (mm), codes and diameters."""
+"""The target field: target ids, coordinates in the field frame (mm), codes, diameters and, for a
+field on several surfaces (a cell's floor and walls), the normal of each target's plane."""
 
 from __future__ import annotations
 
@@ -15,7 +16,10 @@ class Field:
     """Targets fixed in the cell, in the ``field`` frame.
 
     ``ids`` (N,) str; ``xyz`` (N, 3) float mm; ``codes`` (N,) int, -1 for an
-    uncoded target; ``diameters_mm`` (N,) float, the central measuring disk.
+    uncoded target; ``diameters_mm`` (N,) float, the central measuring disk; ``normals`` (N, 3)
+    unit vectors, the side of each target's plane its print faces (None: +z for every target, a
+    field on one plane). A disk's image depends on its plane: the perspective shift of its centre
+    (eccentricity) and the ellipse that ROI tracking predicts for its ring's mask.
     """
 
     name: str
@@ -23,6 +27,7 @@ class Field:
     xyz: Array
     codes: NDArray[np.int64]
     diameters_mm: Array
+    normals: Array | None = None
     index: dict[str, int] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -46,6 +51,14 @@ class Field:
         object.__setattr__(self, "xyz", xyz)
         object.__setattr__(self, "codes", codes)
         object.__setattr__(self, "diameters_mm", diam)
+        if self.normals is not None:
+            normals = np.asarray(self.normals, dtype=np.float64)
+            if normals.shape != (n, 3):
+                raise ValueError(f"field has {n} targets but normals of shape {normals.shape}")
+            length = np.linalg.norm(normals, axis=1)
+            if not np.all(np.isfinite(length) & (length > 1e-9)):
+                raise ValueError("a target's normal must be a finite, non-zero vector")
+            object.__setattr__(self, "normals", normals / length[:, None])
         object.__setattr__(self, "index", index)
 
     def __len__(self) -> int:
@@ -54,6 +67,15 @@ class Field:
     @property
     def is_coded(self) -> NDArray[np.bool_]:
         return self.codes >= 0
+
+    @property
+    def has_normals(self) -> bool:
+        """Whether some target's plane is not the field's x-y plane (normals given, not all +z)."""
+        return self.normals is not None and not bool(np.all(self.normals[:, 2] > 1.0 - 1e-12))
+
+    def normal_rows(self, rows: NDArray[np.int64]) -> Array | None:
+        """The normals (k, 3) of the field rows ``rows``; None where the field is on one plane (+z)."""
+        return self.normals[rows] if self.has_normals and self.normals is not None else None
 
     def indices_of(self, ids: list[str] | tuple[str, ...]) -> NDArray[np.int64]:
         """Field row of each id; raises ``KeyError`` naming the first unknown id."""

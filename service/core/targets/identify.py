@@ -34,6 +34,7 @@ Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 DEFAULT_NORMAL_FIELD = np.array([0.0, 0.0, 1.0])
+MAX_VIEW_DEG = 85.0  # a disk seen further from its normal is a sliver: not predicted (fields with normals)
 # in-plane axes (1, 3) of the default plane, as eccentricity_px's general rule gives them for the normal +z
 _DEFAULT_AXES = (np.array([[0.0, 1.0, 0.0]]), np.array([[-1.0, 0.0, 0.0]]))
 
@@ -108,7 +109,10 @@ def project_field(
 def project_field(
     camera: BrownFraser, field: Field, T_field_camera: Array, margin_px: float = 0.0, *, with_depth: bool = False
 ) -> tuple[IntArray, Array] | tuple[IntArray, Array, Array]:
-    """Rows and pixel positions (N, 2) of field targets in front of the camera and inside the image.
+    """Rows and pixel positions (N, 2) of field targets in front of the camera and inside the image,
+    and, in a field with normals, facing it: a target seen from behind, or at more than
+    :data:`MAX_VIEW_DEG` from its normal, is not predicted (it cannot be measured, and predicted it
+    could take a visible target's match).
 
     With ``with_depth`` also their depth (N,) mm along the optical axis. One compiled pass (the
     prediction of every target runs once or twice per ROI frame).
@@ -135,9 +139,26 @@ def project_field(
         float(margin_px),
     )
     rows = np.flatnonzero(inside)
+    if field.has_normals and field.normals is not None:
+        to_camera = T[:3, 3] - field.xyz[rows]
+        facing = np.einsum("ij,ij->i", field.normals[rows], to_camera)
+        rows = rows[facing > np.cos(np.radians(MAX_VIEW_DEG)) * np.linalg.norm(to_camera, axis=1)]
     if with_depth:
         return rows, uv[rows], depth[rows]
     return rows, uv[rows]
+
+
+def plane_axes(normals_field: Array) -> tuple[Array, Array]:
+    """Two in-plane unit axes (each (N, 3), field frame) of the plane of each unit normal (N, 3),
+    right-handed with it; any pair will do for a circle's image, whose conic does not depend on them."""
+    nx, ny, nz = normals_field[:, 0], normals_field[:, 1], normals_field[:, 2]
+    zero = np.zeros_like(nx)
+    # normal x (1, 0, 0) or, for a normal near x, normal x (0, 1, 0); by hand: np.cross costs more here
+    ex = np.where((np.abs(nx) < 0.9)[:, None], np.stack([zero, nz, -ny], 1), np.stack([-nz, zero, nx], 1))
+    ex /= np.linalg.norm(ex, axis=1, keepdims=True)
+    ey = np.stack([ny * ex[:, 2] - nz * ex[:, 1], nz * ex[:, 0] - nx * ex[:, 2], nx * ex[:, 1] - ny * ex[:, 0]], 1)
+    # writable C arrays: one compiled kernel for every way the inputs come
+    return kernel_array(ex), kernel_array(ey)
 
 
 def eccentricity_px(
@@ -160,19 +181,7 @@ def eccentricity_px(
     Subtract the result from measured centroids to get the image of the centre.
     """
     n = len(p_field)
-    if normals_field is None:  # one plane for all
-        ex, ey = _DEFAULT_AXES
-    else:
-        normal = np.broadcast_to(normals_field, (n, 3))
-        # any in-plane axes will do: the conic of a circle does not depend on them
-        nx, ny, nz = normal[:, 0], normal[:, 1], normal[:, 2]
-        zero = np.zeros_like(nx)
-        # normal x (1, 0, 0) or, for a normal near x, normal x (0, 1, 0); by hand: np.cross costs more here
-        ex = np.where((np.abs(nx) < 0.9)[:, None], np.stack([zero, nz, -ny], 1), np.stack([-nz, zero, nx], 1))
-        ex /= np.linalg.norm(ex, axis=1, keepdims=True)
-        ey = np.stack([ny * ex[:, 2] - nz * ex[:, 1], nz * ex[:, 0] - nx * ex[:, 2], nx * ex[:, 1] - ny * ex[:, 0]], 1)
-        # writable C arrays: one compiled kernel for every way the inputs come
-        ex, ey = kernel_array(ex), kernel_array(ey)
+    ex, ey = _DEFAULT_AXES if normals_field is None else plane_axes(np.broadcast_to(normals_field, (n, 3)))
     T = np.asarray(T_field_camera, dtype=np.float64)
     R_camera_field = np.ascontiguousarray(T[:3, :3].T)
     t_camera_field = -R_camera_field @ T[:3, 3]
