@@ -71,7 +71,8 @@ def measurer():
 
 
 # VIEWS[6:8]: overexposed, most disks clipped (before clipped disks were measured: no pose at 2x)
-@pytest.mark.parametrize("view", [VIEWS[0], VIEWS[2], VIEWS[3], VIEWS[5], VIEWS[6], VIEWS[7]], ids=lambda v: v.name)
+# VIEWS[9]: close, a coded target fills a noise tile (before: 1-3 of them a frame refused as faint)
+@pytest.mark.parametrize("view", [VIEWS[k] for k in (0, 2, 3, 5, 6, 7, 9)], ids=lambda v: v.name)
 def test_posecell_measures_the_independent_images_with_its_defaults_better_than_the_peer(measurer, view):
     ours, peer = Score(), Score()
     frames = frames_of(view, 2, seed=7)

@@ -234,6 +234,8 @@ VIEWS = (
     View("60 deg, 1 m, overexposed 2x", 60.0, 1000.0, Light(peak_dn=2 * Light.peak_dn)),
     View("60 deg, 1 m, overexposed 4x", 60.0, 1000.0, Light(peak_dn=4 * Light.peak_dn)),
     View("corner: floor and wall, 60 deg, 1.3 m", 60.0, 1300.0, corner=True),
+    # close: a coded target with its ring fills a 64 px noise tile (it was taken for 30x the noise)
+    View("head-on, 0.5 m (coded targets 36 px across)", 90.0, 500.0),
 )
 CORNER_LOOK_MM = (0.0, 250.0, 60.0)  # where the corner views look: near the wall's foot
 

@@ -32,6 +32,8 @@ from service.core._kernels import warm_images
 #: 1 / (2 Phi^-1(3/4)): a normal distribution's interquartile range is this many times its sigma
 IQR_TO_SIGMA = 0.7413011092528009
 CLIP_SIGMA = 3.5  # the second round keeps the residuals within this many first-round sigmas
+MIN_BELOW = 16.0  # samples below the background that a tile covered beyond its median is judged by
+COVERED_LIKE = 2.0  # a covered tile's own estimate stands where it is within this many times the frame's
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -56,25 +58,51 @@ def _quantile(cum, hist, target, half):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _clipped_iqr(hist, cum, half, centre, sigma):
+    """The interquartile sigma (bins) of the samples within CLIP_SIGMA ``sigma`` of ``centre`` (bins),
+    ``sigma`` itself when fewer than 8 are."""
+    clip = CLIP_SIGMA * max(sigma, 0.5)
+    f_lo, f_hi = _cdf(cum, hist, centre - clip, half), _cdf(cum, hist, centre + clip, half)
+    m = f_hi - f_lo
+    if m < 8.0:
+        return sigma
+    q1, q3 = _quantile(cum, hist, f_lo + 0.25 * m, half), _quantile(cum, hist, f_lo + 0.75 * m, half)
+    return IQR_TO_SIGMA * (q3 - q1)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _iqr_sigma(hist, cum, half):
-    """Clipped interquartile sigma (bins) of one tile's histogram (``cum[k]``: samples in bins < k).
+    """Clipped interquartile sigma (bins) of one tile's histogram (``cum[k]``: samples in bins < k),
+    and the estimate of a tile covered beyond its median (NaN where it is not).
 
     First from the lower half alone (median less lower quartile): the targets are bright, and a tile
     nearly half covered by them still has its median in the background, while its upper quartile
     would lie on the targets. Then the full interquartile range of what lies within CLIP_SIGMA of the
-    median: a textured background's upper tail counts."""
+    median: a textured background's upper tail counts.
+
+    A tile covered more than half (a coded target at close range fills it) has its median on the
+    targets, far above the background its residuals centre on (0): its sigma came out at up to 30
+    times its noise (seen: 31 DN for 1.5, and a 0.5 m view's big coded disks refused as faint), or as
+    the flat top's (0.4 DN for 2-10). Then the samples below 0, the background's lower half, give
+    the estimate about 0 (:func:`tile_noise_kernel` takes it where it is like the frame's)."""
     n = cum[hist.size]
     if n < 16:
-        return 0.0
+        return 0.0, np.nan
     med = _quantile(cum, hist, 0.5 * n, half)
-    sigma = 2.0 * IQR_TO_SIGMA * (med - _quantile(cum, hist, 0.25 * n, half))
-    clip = CLIP_SIGMA * max(sigma, 0.5)
-    f_lo, f_hi = _cdf(cum, hist, med - clip, half), _cdf(cum, hist, med + clip, half)
-    m = f_hi - f_lo
-    if m >= 8.0:
-        q1, q3 = _quantile(cum, hist, f_lo + 0.25 * m, half), _quantile(cum, hist, f_lo + 0.75 * m, half)
-        sigma = IQR_TO_SIGMA * (q3 - q1)
-    return sigma
+    sigma = _clipped_iqr(hist, cum, half, med, 2.0 * IQR_TO_SIGMA * (med - _quantile(cum, hist, 0.25 * n, half)))
+    below = _cdf(cum, hist, 0.0, half)  # the background's lower half, whatever covers the rest
+    if below < MIN_BELOW:
+        return sigma, np.nan
+    low = -2.0 * IQR_TO_SIGMA * _quantile(cum, hist, 0.5 * below, half)
+    w = 2.0 * max(low, 0.5)
+    # the median far above (or near the clipped top, for a noisy tile), and about 0 as many samples
+    # above as below (a background centred on 0: residuals that sit a sigma or two above 0 have far
+    # more above)
+    if med > min(2.0 * CLIP_SIGMA * max(low, 0.5), 0.75 * half) and (
+        _cdf(cum, hist, w, half) - below <= 2.0 * (below - _cdf(cum, hist, -w, half)) + 4.0
+    ):
+        return sigma, _clipped_iqr(hist, cum, half, 0.0, low)
+    return sigma, np.nan
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -90,6 +118,7 @@ def tile_noise_kernel(img, bg, step, tile, sub_v, shift, half):
     per = tile // step
     th, tw = (hs + per - 1) // per, (ws + per - 1) // per
     sigma = np.zeros((th, tw))
+    covered = np.full((th, tw), np.nan)
     nb = 2 * half + 1
     cum = np.zeros(nb + 1)
     hist = np.zeros(nb)
@@ -123,8 +152,15 @@ def tile_noise_kernel(img, bg, step, tile, sub_v, shift, half):
                 cum[k] = c
                 c += hist[k]
             cum[nb] = c
-            sigma[ti, tj] = _iqr_sigma(hist, cum, half) * bin_dn
-    return sigma
+            sigma[ti, tj], covered[ti, tj] = _iqr_sigma(hist, cum, half)
+    # a covered tile's estimate about 0 where it is like the frame's background (at most
+    # COVERED_LIKE times the tiles' median): a ramp or a shadow under a cover is not a background
+    like = COVERED_LIKE * np.median(sigma) if sigma.size else 0.0
+    for ti in range(th):
+        for tj in range(tw):
+            if covered[ti, tj] <= like:
+                sigma[ti, tj] = covered[ti, tj]
+    return sigma * bin_dn
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

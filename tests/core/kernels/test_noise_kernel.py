@@ -16,7 +16,9 @@ import pytest
 
 from service.core._kernels.noise_kernel import (
     CLIP_SIGMA,
+    COVERED_LIKE,
     IQR_TO_SIGMA,
+    MIN_BELOW,
     box_peak_kernel,
     cell_threshold_kernel,
     tile_noise_kernel,
@@ -49,18 +51,42 @@ def _quantile(r, target):
     return values[k] - 0.5 + (target - (after[k] - counts[k])) / counts[k]
 
 
-def _sigma_reference(r):
+def _sigma_reference(r, half):
+    """(sigma, the covered tile's estimate or NaN) of one tile's samples."""
     if r.size < 16:
-        return 0.0
+        return 0.0, np.nan
+
+    def clipped(centre, sigma):
+        clip = CLIP_SIGMA * max(sigma, 0.5)
+        lo, hi = _cdf(r, centre - clip), _cdf(r, centre + clip)
+        m = hi - lo
+        return IQR_TO_SIGMA * (_quantile(r, lo + 0.75 * m) - _quantile(r, lo + 0.25 * m)) if m >= 8 else sigma
+
     n = r.size
     med = _quantile(r, 0.5 * n)
-    sigma = 2 * IQR_TO_SIGMA * (med - _quantile(r, 0.25 * n))
-    clip = CLIP_SIGMA * max(sigma, 0.5)
-    lo, hi = _cdf(r, med - clip), _cdf(r, med + clip)
-    m = hi - lo
-    if m >= 8:
-        sigma = IQR_TO_SIGMA * (_quantile(r, lo + 0.75 * m) - _quantile(r, lo + 0.25 * m))
-    return sigma
+    sigma = clipped(med, 2 * IQR_TO_SIGMA * (med - _quantile(r, 0.25 * n)))
+    below = _cdf(r, 0.0)
+    if below >= MIN_BELOW:  # covered beyond its median: the background's lower half, about 0
+        low = -2 * IQR_TO_SIGMA * _quantile(r, 0.5 * below)
+        w = 2 * max(low, 0.5)
+        symmetric = _cdf(r, w) - below <= 2 * (below - _cdf(r, -w)) + 4  # as many about 0 above as below
+        if med > min(2 * CLIP_SIGMA * max(low, 0.5), 0.75 * half) and symmetric:
+            return sigma, clipped(0.0, low)
+    return sigma, np.nan
+
+
+def _tiles_reference(img, bg, shape, shift, half):
+    """Every tile's sigma, bins: its own, or where covered its estimate about 0 when that is within
+    COVERED_LIKE times the median of the tiles' own."""
+    both = np.array(
+        [
+            [_sigma_reference(_samples(img, bg, i, j, shift, half), half) for j in range(shape[1])]
+            for i in range(shape[0])
+        ]
+    )
+    own, covered = both[..., 0], both[..., 1]
+    with np.errstate(invalid="ignore"):
+        return np.where(covered <= COVERED_LIKE * np.median(own), covered, own)
 
 
 def _image(rng, shape, dtype, sigma_dn, full):
@@ -92,7 +118,7 @@ def test_tile_noise_is_its_definition_over_the_sampled_residuals(rng, dtype, ful
     bg = base[4::8, 4::8][:37, :52].astype(np.float32)
     got = tile_noise_kernel(img, bg, STEP, TILE, SUB_V, shift, half)
     assert got.shape == (5, 7)
-    ref = np.array([[_sigma_reference(_samples(img, bg, i, j, shift, half)) for j in range(7)] for i in range(5)])
+    ref = _tiles_reference(img, bg, (5, 7), shift, half)
     # the same arithmetic in another order: round-off of quantiles ~100 bins from the origin
     np.testing.assert_allclose(got, ref * 2.0**shift, rtol=1e-12, atol=1e-12)
 
@@ -119,11 +145,17 @@ def test_tile_noise_estimates_the_true_sigma_of_gaussian_noise(rng, sigma_dn):
     got = tile_noise_kernel(img, np.full((64, 64), 80.0, np.float32), STEP, TILE, SUB_V, 0, 64)
     assert np.all(np.abs(got / sigma_dn - 1) < 0.2)
     assert abs(np.mean(got) / sigma_dn - 1) < 0.03
-    # targets over 40 % of a tile do not raise it: the clipped rounds keep the background's sigma
-    covered = img.copy()
-    covered[:64, :26] = 240
-    again = tile_noise_kernel(covered, np.full((64, 64), 80.0, np.float32), STEP, TILE, SUB_V, 0, 64)
-    assert abs(again[0, 0] / sigma_dn - 1) < 0.3
+    # targets over 40 % of a tile do not raise it: the clipped rounds keep the background's sigma;
+    # nor over 75 % or 90 % (a coded target at 0.5 m fills a tile: 31 DN was estimated for 1.5),
+    # where the background's lower half alone is left to judge by
+    bg = np.full((64, 64), 80.0, np.float32)
+    for j, cover in enumerate((26, 48, 58)):
+        covered = img.copy()
+        covered[64 * j : 64 * (j + 1), :cover] = 240
+        again = tile_noise_kernel(covered, bg, STEP, TILE, SUB_V, 0, 64)
+        assert abs(again[j, 0] / sigma_dn - 1) < (0.3 if cover < 58 else 0.4), (cover, again[j, 0])
+        ref = _tiles_reference(covered, bg, again.shape, 0, 64)
+        np.testing.assert_allclose(again, ref, rtol=1e-12)
 
 
 def test_tile_noise_agrees_with_the_median_absolute_deviation_of_each_tile(rng):
