@@ -302,7 +302,10 @@ class Score:
 
 
 def _visible(frame: SheetFrame, margin_px: float = 12.0) -> NDArray[np.bool_]:
+    """The targets whose centre is ``margin_px`` and whose disk (as large as head-on) 2 px clear of
+    the image border."""
     uv = frame.uv_true
+    margin_px = np.maximum(margin_px, frame.radius_px + 2.0)
     return (
         (uv[:, 0] > margin_px)
         & (uv[:, 0] < WIDTH - 1 - margin_px)
@@ -441,7 +444,8 @@ def run(n_frames: int = 5, seed: int = 1) -> str:
         f"{fit.max_px:.4f} max), full frames; the peer with OpenCV's own model, given the identities. "
         "Centres against the true projections of the targets' centres (a point's, not a blob's: the "
         "perspective shift of a disk's image, < 0.01 px here, is in the figure); *whole in view*: the disk, "
-        "as large as head-on, 2 px clear of the image border (a foreshortened one nearer is named too). "
+        "as large as head-on, 2 px and its centre 12 px clear of the image border (a foreshortened one "
+        "nearer is named too). "
         f"*Corner*: that sheet on the floor and a {WALL.width_mm:.0f} x {WALL.height_mm:.0f} mm sheet "
         f"({len(sheet(WALL)[1])} targets) standing on its far edge, the field giving each target's normal.",
         "",
