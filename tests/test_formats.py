@@ -144,6 +144,13 @@ def test_field_normals_are_read_made_unit_and_written_back():
     assert "normal" not in json.dumps(formats.field_to_json(plain))
 
 
+def test_field_csv_takes_a_normal_after_the_diameter():
+    field = formats.field_from_csv("id,x,y,z,code,diameter_mm,nx,ny,nz\nC7,0,0,0,7,10\nW1,0,300,50,,6,0,-1,0\n")
+    assert field.has_normals and np.allclose(field.normals, [[0, 0, 1], [0, -1, 0]])
+    with pytest.raises(FormatError, match="a normal that is not three numbers"):
+        formats.field_from_csv("W1,0,300,50,,6,0,-1\n")
+
+
 @pytest.mark.parametrize("row", ["P1,1,2,3,7.5,6", "P1,1,2,3,7,six", "P1,1,2,inf"])
 def test_field_csv_with_a_bad_cell_is_a_format_error(row):
     with pytest.raises(FormatError, match=re.escape("field.csv")):

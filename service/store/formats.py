@@ -297,7 +297,8 @@ def field_to_json(field: Field) -> dict[str, Any]:
 
 
 def field_from_csv(text: str, source: str = "field.csv") -> Field:
-    """CSV rows ``id,x,y,z[,code,diameter_mm]``; a header row and ``#`` comments are skipped."""
+    """CSV rows ``id,x,y,z[,code,diameter_mm[,nx,ny,nz]]`` (the normal: the side the target's print
+    faces, as field.json's ``normal``); a header row and ``#`` comments are skipped."""
     targets = []
     for row in csv.reader(io.StringIO(text)):
         if not row or row[0].strip().startswith("#"):
@@ -308,16 +309,21 @@ def field_from_csv(text: str, source: str = "field.csv") -> Field:
         except (ValueError, IndexError):
             if not targets and cells[0].lower() in ("id", "name"):
                 continue  # header
-            raise FormatError(f"{source}: row {row!r} is not 'id,x,y,z[,code,diameter_mm]'") from None
+            raise FormatError(f"{source}: row {row!r} is not 'id,x,y,z[,code,diameter_mm[,nx,ny,nz]]'") from None
         t: dict[str, Any] = {"id": cells[0], "xyz": xyz}
         try:
             if len(cells) > 4 and cells[4] not in ("", "-"):
                 t["code"] = int(cells[4])
             if len(cells) > 5 and cells[5] != "":
                 t["diameter_mm"] = float(cells[5])
+            if len(cells) > 6 and any(cells[6:]):
+                if len(cells) != 9:
+                    raise ValueError
+                t["normal"] = [float(v) for v in cells[6:9]]
         except ValueError:
             raise FormatError(
-                f"{source}: row {row!r} has a code that is not a whole number or a diameter that is not a number"
+                f"{source}: row {row!r} has a code that is not a whole number, a diameter that is not a number "
+                "or a normal that is not three numbers"
             ) from None
         targets.append(t)
     return field_from_json({"name": Path(source).stem, "targets": targets}, source)

@@ -222,6 +222,26 @@ def test_uploaded_hand_eye_is_versioned_and_used_from_the_next_frame(live):
         assert abs(m["deviation"]["vector_mm"][2]) < 2.0
 
 
+def test_a_field_with_each_targets_normal_is_stored_given_back_and_measured_with(live):
+    # the plate tilted 1 deg about x in the field's eyes: each target's own plane (normals) reaches
+    # the measurement (eccentricity, ring masks, visibility) and the poses go on
+    _wait_ok(live)
+    with live.client() as c:
+        field = c.get("/calibration/field").json()
+        v0 = c.get("/calibration").json()["field"]["version"]
+        tilted = {**field, "targets": [{**t, "normal": [0.0, -0.0175, 1.0]} for t in field["targets"]]}
+        r = c.put("/calibration/field", json=tilted, params={"note": "normals"})
+        assert r.status_code == 200, r.text
+        back = c.get("/calibration/field").json()["targets"]
+        assert all(t["normal"] == [0.0, -0.0175, 1.0] for t in back)  # the document as uploaded
+        assert live.worker.calibration.field.has_normals  # read: the measurement's field has them
+        m = c.post("/measure", json={"timeout_s": 5}).json()
+        assert m["ok"] and m["n_coded"] >= 4, m
+        r = c.post(f"/calibration/field/rollback/{v0}")
+        assert r.status_code == 200
+        assert all("normal" not in t for t in c.get("/calibration/field").json()["targets"])
+
+
 def test_unplugged_camera_is_reported_and_the_service_recovers(live):
     _wait_ok(live)
     cam = live.worker.cameras["cam0"].driver

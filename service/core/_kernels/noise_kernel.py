@@ -8,9 +8,10 @@ normal noise, and without its search), from a histogram, with the targets clippe
 away: first from the lower quartile and the median alone, then the interquartile range
 of the residuals within 3.5 such sigmas of the median, so a tile 40 % covered by bright
 disks and rings (close up, or a dense coded plate) gives the noise of its background,
-not of its targets. Quantiles are interpolated inside the histogram's
-bins, so an 8-bit image's integer levels give a continuous estimate (sigma 0.5 DN
-does not come out as 0, nor 1.2 DN as 1.48).
+not of its targets; a tile covered beyond its median is judged by the samples below its
+background, where that gives a noise like the frame's (``_iqr_sigma``). Quantiles are
+interpolated inside the histogram's bins, so an 8-bit image's integer levels give a
+continuous estimate (sigma 0.5 DN does not come out as 0, nor 1.2 DN as 1.48).
 
 Written as one loop over a sample of the pixels (every 4th row, every 2nd column: 512
 samples a tile, a 7 % error of sigma): a median per tile by sorting would cost more than
