@@ -208,14 +208,15 @@ class Brightness:
     def of(cls, blobs: Blobs, n_rejected_saturated: int, full_dn: float) -> Brightness:
         clipped = int(np.count_nonzero(blobs.saturated))
         n_saturated = n_rejected_saturated + clipped
+        peak_dn, background_dn = blobs.peak_dn, blobs.background_dn
         if clipped:  # how far below full scale the others are is what the exposure steers by
-            blobs = blobs.take(np.flatnonzero(~blobs.saturated))
-        n = len(blobs)
+            peak_dn, background_dn = peak_dn[~blobs.saturated], background_dn[~blobs.saturated]
+        n = len(peak_dn)
         if n == 0:
             return cls(0, 0.0, 0.0, n_saturated, full_dn)
         k = min(n - 1, int(0.9 * n))
-        peak = float(np.partition(blobs.peak_dn, k)[k])  # a partition, not a sort: ~200 disks a frame
-        return cls(n, peak, _median(blobs.background_dn), n_saturated, full_dn)
+        peak = float(np.partition(peak_dn, k)[k])  # a partition, not a sort: ~200 disks a frame
+        return cls(n, peak, _median(background_dn), n_saturated, full_dn)
 
     @property
     def saturation_note(self) -> str:
