@@ -8,7 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from service.pipeline.measure import Brightness, FrameMeasurer
+from service.pipeline.brightness import Brightness
+from service.pipeline.measure import FrameMeasurer
 from service.runtime.exposure import SETTLE_FRAMES, ExposureControl, ExposureLimits
 from service.runtime.worker import Worker
 from service.settings import load_settings
@@ -191,7 +192,7 @@ def test_a_held_exposure_control_takes_no_step_until_released(tmp_path):
 
 @pytest.mark.parametrize("n", [1, 2, 7, 230])
 def test_the_frame_background_is_the_median_of_the_disks_backgrounds(n):
-    from service.pipeline.measure import _median
+    from service.pipeline.brightness import _median
 
     x = np.random.default_rng(n).uniform(5.0, 40.0, n)
     assert _median(x) == pytest.approx(float(np.median(x)), abs=1e-12)

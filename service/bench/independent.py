@@ -236,6 +236,11 @@ VIEWS = (
     View("corner: floor and wall, 60 deg, 1.3 m", 60.0, 1300.0, corner=True),
     # close: a coded target with its ring fills a 64 px noise tile (it was taken for 30x the noise)
     View("head-on, 0.5 m (coded targets 36 px across)", 90.0, 500.0),
+    # the ring light's beam and the lens: the corners 60 % darker than the centre (by default 30 %);
+    # with one edge level each disk's centre moved towards the light, the pose 1.6x further off
+    View("60 deg, 1 m, corners 60 % darker", 60.0, 1000.0, Light(falloff=0.6)),
+    # out of focus: the blur fills the gap between a coded target's disk and its ring (it gave no pose)
+    View("60 deg, 1 m, out of focus (blur 2.5 px)", 60.0, 1000.0, Light(blur_px=2.5)),
 )
 CORNER_LOOK_MM = (0.0, 250.0, 60.0)  # where the corner views look: near the wall's foot
 

@@ -49,6 +49,7 @@ from service.core.targets.identify import (
     plane_axes,
     project_field,
 )
+from service.pipeline.brightness import Brightness
 
 Array = NDArray[np.float64]
 
@@ -187,60 +188,6 @@ class MeasureSettings:
 
 
 @dataclass(frozen=True)
-class Brightness:
-    """How bright a frame's targets came out, in the image's DN: what the exposure control steers by.
-
-    n_measured -- disks measured unclipped (the ROI windows' or the full frame's blobs)
-    peak_dn -- the 90th percentile of their brightest pixels (the brightest tenth may clip first)
-    background_dn -- the median of their local backgrounds
-    n_saturated -- disks clipped at the saturation level: measured (flagged) or, with
-        ``max_saturated_px``, rejected (only the full frame sees those)
-    full_dn -- the saturation level
-    """
-
-    n_measured: int
-    peak_dn: float
-    background_dn: float
-    n_saturated: int
-    full_dn: float
-
-    @classmethod
-    def of(cls, blobs: Blobs, n_rejected_saturated: int, full_dn: float) -> Brightness:
-        clipped = int(np.count_nonzero(blobs.saturated))
-        n_saturated = n_rejected_saturated + clipped
-        peak_dn, background_dn = blobs.peak_dn, blobs.background_dn
-        if clipped:  # how far below full scale the others are is what the exposure steers by
-            peak_dn, background_dn = peak_dn[~blobs.saturated], background_dn[~blobs.saturated]
-        n = len(peak_dn)
-        if n == 0:
-            return cls(0, 0.0, 0.0, n_saturated, full_dn)
-        k = min(n - 1, int(0.9 * n))
-        peak = float(np.partition(peak_dn, k)[k])  # a partition, not a sort: ~200 disks a frame
-        return cls(n, peak, _median(background_dn), n_saturated, full_dn)
-
-    @property
-    def saturation_note(self) -> str:
-        """What the saturated targets mean for the user (empty without any)."""
-        if not self.n_saturated:
-            return ""
-        seen = self.n_measured + self.n_saturated
-        return (
-            f"{self.n_saturated} of {seen} targets saturated at {self.full_dn:g} DN: shorten the exposure "
-            "or dim the ring light"
-        )
-
-
-def _median(x: NDArray[np.float64]) -> float:
-    """``np.median`` of a 1-D array by a partition about the middle: 6 us against np.median's 31 us
-    for the ~230 disks of every frame (its general path copies, checks for NaN and reduces)."""
-    h = len(x) // 2
-    if len(x) % 2:
-        return float(np.partition(x, h)[h])
-    p = np.partition(x, (h - 1, h))
-    return 0.5 * (float(p[h - 1]) + float(p[h]))
-
-
-@dataclass(frozen=True)
 class Outcome:
     """One frame's result, how it was obtained and what it cost."""
 
@@ -350,6 +297,29 @@ def _with_saturation_hint(e: SolveError, brightness: Brightness) -> SolveError:
     if b.n_saturated < max(2, 0.2 * (b.n_measured + b.n_saturated)):
         return e
     return SolveError(e.reason, f"{e.message.rstrip('.')}; {b.saturation_note}.", e.details)
+
+
+# Blur (a lens out of focus, a near target beyond the depth of field) fills the gap between a coded
+# target's disk and its ring: at the noise's segmentation level the two are one blob, refused as
+# merged, and no ring is read. A frame left with too few coded targets, where as many blobs were
+# refused as merged, is detected again with the segmentation level at JOINED_LEVEL of its targets'
+# brightness, above the gap's blurred floor (posecell's sheet through cairo and OpenCV, blurred by
+# 2.5 px: no pose before; now 91-99 % of the targets named, 0.03-0.04 px; README, *Out of focus*).
+JOINED_LEVEL = 0.3
+
+
+def _joined_rings_settings(
+    s: MeasureSettings, e: SolveError, counts: dict[str, int], brightness: Brightness
+) -> DetectSettings | None:
+    """The detection to try again with after the failure ``e``, or None when it was not that."""
+    signal = brightness.peak_dn - brightness.background_dn
+    if e.reason != Reason.too_few_targets or counts.get("merged_or_misshapen", 0) < s.min_coded or not signal > 0:
+        return None
+    # min_contrast_dn is in 8-bit DN; the segmentation level is half of it
+    contrast_8bit = 2.0 * JOINED_LEVEL * signal * 255.0 / brightness.full_dn
+    if contrast_8bit < 1.5 * s.detect.min_contrast_dn:
+        return None  # the targets are faint: no level between their gap and the noise's
+    return replace(s.detect, min_contrast_dn=round(contrast_8bit, 1))
 
 
 class _Clock:
@@ -476,6 +446,18 @@ class FrameMeasurer:
         try:
             result = self._identify_and_resect(image, blobs, clock)
         except SolveError as e:
+            raised = _joined_rings_settings(s, e, counts, brightness)
+            if raised is not None:
+                try:  # the blur joined the coded targets' disks to their rings: again above the join
+                    blobs, rejections = detect_blobs(image, raised, mask_buffer=self._mask)
+                    counts = rejections.counts
+                    clock.lap("detect")
+                    result = self._identify_and_resect(image, blobs, clock)
+                    return Outcome(result, "full", clock.ms, len(blobs), counts, brightness)
+                except SolveError as again:
+                    note = f"again with the segmentation level at {JOINED_LEVEL:.0%} of the targets' brightness"
+                    message = f"{again.message.rstrip('.')} ({note}, as for a blurred image)"
+                    e = SolveError(again.reason, message, again.details)
             failure = Failure.from_error(_with_saturation_hint(_with_calibration_hint(e, self.camera), brightness))
             return Outcome(failure, "full", clock.ms, len(blobs), counts, brightness)
         return Outcome(result, "full", clock.ms, len(blobs), counts, brightness)

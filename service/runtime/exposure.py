@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from service.pipeline.measure import Brightness
+from service.pipeline.brightness import Brightness
 
 #: a step smaller than this share is not worth a camera write
 MIN_STEP = 0.05

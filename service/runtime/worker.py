@@ -42,7 +42,7 @@ from drivers.base import DriverError, Frame, RobotDriver, TriggerMode
 from drivers.registry import make_camera, make_robot
 from service.core.measurement import Measurement
 from service.core.results import Failure, Reason
-from service.pipeline.measure import Brightness
+from service.pipeline.brightness import Brightness
 from service.runtime.acquisition import CameraChannel, DeviceState, Wakeup
 from service.runtime.arm import ArmLease
 from service.runtime.calibration_state import CalibrationState

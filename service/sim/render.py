@@ -12,11 +12,14 @@ Image formation, in this order (levels in 8-bit DN, scaled to the bit depth last
    pixels away from edges, ``supersample x supersample`` sub-samples (each a
    ramp across the edge) in pixels that an edge may cross; see
    :mod:`service.sim.raster`.
-3. Radiometry (one level per target, at its centre): the ring light sits at
-   the projection centre, so the returned light falls with distance squared
-   (``target_dn`` at :data:`REFERENCE_DISTANCE_MM`), with ``cos(incidence) **
-   INCIDENCE_POWER`` (retro-reflective sheeting is wide-angle) and with the
-   natural vignetting ``cos(field angle) ** VIGNETTING_POWER``.
+3. Radiometry: the ring light sits at the projection centre, so the returned
+   light falls with distance squared (``target_dn`` at :data:`REFERENCE_DISTANCE_MM`),
+   with ``cos(incidence) ** INCIDENCE_POWER`` (retro-reflective sheeting is
+   wide-angle) and with the natural vignetting ``cos(field angle) **
+   VIGNETTING_POWER``: a level at each target's centre and, across its pattern,
+   that level's change in the image to first order in ``ln`` (the light is no
+   step from one target to the next: a level per target hid that a fixed edge
+   level, and an intensity centroid, move towards the light).
 4. Optics: Gaussian blur ``blur_sigma_px`` (cv2) of the target light, and the smear of the
    camera's motion during the exposure (``motion_blur_px`` along ``motion_angle_deg``:
    :func:`smear`, centred, so ``uv_true`` is the mid-exposure position); then the
@@ -88,6 +91,10 @@ class RenderSettings:
     motion_angle_deg: float = 0.0
     occluders: tuple[tuple[float, float, float], ...] = ()  # dark discs (u, v, radius_px)
     lit: bool = True  # ring light on? if False, targets are not bright (only background)
+    # the light's change across each target's pattern (step 3 of the module's docstring); False:
+    # one level a target, for the tests of the geometry alone (an intensity centroid of an evenly
+    # lit pattern is its area centroid)
+    shading: bool = True
 
     def __post_init__(self) -> None:
         if int(self.supersample) != self.supersample or self.supersample < 1:
@@ -347,6 +354,7 @@ class _Targets:
     uv_disk_centroid: Array  # (M, 2)
     outline_uv: Array  # (M, OUTLINE_POINTS, 2) outer edge of the whole pattern
     relative_level: Array  # (M,) a fully covered pixel's brightness before blur, in units of target_dn x exposure_scale
+    light_gradient: Array  # (M, 2) d ln(relative_level) / d(u, v) per px across the target's image
 
 
 def _targets_in_view(
@@ -394,10 +402,7 @@ def _targets_in_view(
     outline_uv[coded_k] = uv[m + m * OUTLINE_POINTS :].reshape(-1, OUTLINE_POINTS, 2)
     finite = np.all(np.isfinite(outline_uv), axis=(1, 2)) & np.all(np.isfinite(uv_true), axis=1)
 
-    d = dist[keep]
-    relative_level = (
-        (REFERENCE_DISTANCE_MM / d) ** 2 * cos_inc[keep] ** INCIDENCE_POWER * (p0[keep, 2] / d) ** VIGNETTING_POWER
-    )
+    relative_level = _relative_level(p0[keep], normal[keep])
     f = finite
     return _Targets(
         index=keep[f],
@@ -411,7 +416,30 @@ def _targets_in_view(
         uv_disk_centroid=_polygon_centroid(disk_uv[f]),
         outline_uv=outline_uv[f],
         relative_level=relative_level[f],
+        light_gradient=_light_gradient(camera, p0[keep][f], normal[keep][f], ex[keep][f], ey[keep][f]),
     )
+
+
+def _relative_level(p: Array, normal: Array) -> Array:
+    """The brightness of a target's point ``p`` (M, 3) camera frame, mm, on its plane of ``normal``."""
+    d = np.linalg.norm(p, axis=1)
+    cos_inc = -np.sum(normal * p, axis=1) / d
+    return (REFERENCE_DISTANCE_MM / d) ** 2 * cos_inc**INCIDENCE_POWER * (p[:, 2] / d) ** VIGNETTING_POWER
+
+
+def _light_gradient(camera: BrownFraser, p0: Array, normal: Array, ex: Array, ey: Array, step_mm: float = 0.5) -> Array:
+    """d ln(level) / d(u, v) per px at each target's centre (M, 2): the level and the image position
+    half a mm along the plane's axes, ``g' J = d ln L / d(x, y)`` with J the plane-to-image Jacobian."""
+    ln0 = np.log(_relative_level(p0, normal))
+    uv0 = camera.pixel_from_camera(p0)
+    dln, J = np.empty((len(p0), 2)), np.empty((len(p0), 2, 2))
+    for k, axis in enumerate((ex, ey)):
+        p = p0 + step_mm * axis
+        dln[:, k] = (np.log(_relative_level(p, normal)) - ln0) / step_mm
+        J[:, :, k] = (camera.pixel_from_camera(p) - uv0) / step_mm
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g = np.linalg.solve(np.transpose(J, (0, 2, 1)), dln[:, :, None])[:, :, 0] if len(p0) else np.zeros((0, 2))
+    return np.where(np.isfinite(g), g, 0.0)
 
 
 @dataclass(frozen=True)
@@ -423,6 +451,7 @@ class _Footprint:
     owner: NDArray[np.intp]  # (K,) row of ``boxed`` of each covered pixel
     flat: NDArray[np.intp]  # (K,) pixel index v * width + u
     cover: NDArray[np.float32]  # (K,) covered fraction
+    shade: NDArray[np.float32]  # (K,) the light at the pixel relative to its target's centre
     overlapping: bool  # whether two boxes may share a pixel
     in_image: NDArray[np.bool_]  # (m,) covers at least part of a pixel
 
@@ -501,8 +530,10 @@ def _footprint_of(pose: _Pose) -> _Footprint:
         pose.supersample,
     )
     in_image = np.bincount(owner, weights=cover, minlength=boxed.size) > 0
-    fp = _Footprint(tg, boxed, owner, flat, cover, _boxes_overlap(u0, v0, u1, v1), in_image)
-    for a in (boxed, owner, flat, cover, in_image):
+    offset = np.column_stack([flat % width, flat // width]) - tg.uv_true[boxed][owner]
+    shade = np.exp(np.sum(tg.light_gradient[boxed][owner] * offset, axis=1)).astype(np.float32)
+    fp = _Footprint(tg, boxed, owner, flat, cover, shade, _boxes_overlap(u0, v0, u1, v1), in_image)
+    for a in (boxed, owner, flat, cover, shade, in_image):
         a.setflags(write=False)  # shared by every frame of this pose
     return fp
 
@@ -549,6 +580,8 @@ def render_frame(
         else np.zeros(boxed.size)
     )
     values = fp.cover * level_dn.astype(np.float32)[fp.owner]
+    if settings.shading:
+        values *= fp.shade
     signal = _accumulate(fp.flat, values, camera.width * camera.height, fp.overlapping)
     image = _compose(signal.reshape(camera.height, camera.width), settings, rng)
 

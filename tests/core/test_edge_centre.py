@@ -61,6 +61,34 @@ def test_edge_centres_are_as_precise_as_centroids_or_more_and_their_sigma_holds(
     assert 0.8 < np.sqrt(np.mean(np.concatenate(z) ** 2)) < 1.25, name  # sigma from the edge's own scatter
 
 
+def _radial_bias_in_corners(frame, uv):
+    """The mean error (px) away from the image centre of the targets more than 350 px from it."""
+    d, j = cKDTree(uv).query(frame.uv_disk_centroid)
+    assert np.all(d < 0.5)
+    err, out = uv[j] - frame.uv_disk_centroid, frame.uv_disk_centroid - [650.0, 515.0]
+    far = np.hypot(*out.T) > 350
+    return float(np.mean(np.sum(err * out, axis=1)[far] / np.hypot(*out[far].T)))
+
+
+def test_a_centre_is_not_pulled_towards_the_light():
+    """The ring light and the lens darken the corners (here ~15 %, noise-free): across each
+    disk the light falls outwards, which pulls an intensity centroid, and an edge found at one
+    level, towards the image centre. The edge whose level follows the light fitted to the frame's
+    plateaus (the default) is not pulled (fails with one level: -0.0056 px)."""
+    f = render_frame(reference_camera(), reference_field(), reference_pose(), RenderSettings(), None)
+    centroids, _ = detect_blobs(f.image, DetectSettings(centre="centroid"))
+    edges, _ = detect_blobs(f.image, EDGE)
+    assert _radial_bias_in_corners(f, centroids.uv) < -0.006  # seen: -0.0086 px
+    assert abs(_radial_bias_in_corners(f, edges.uv)) < 0.0015  # seen: -0.0005
+    d, j = cKDTree(edges.uv).query(centroids.uv)
+    light = edges.light_gradient[j]
+    assert np.all(d < 0.5) and 0.0007 < np.max(np.abs(light)) < 0.0015  # the light's fall-off, per px
+    one_level, _, _ = edge_centres(f.image, centroids.uv, centroids.ellipse, centroids.background_dn)
+    followed, _, _ = edge_centres(f.image, centroids.uv, centroids.ellipse, centroids.background_dn, light)
+    assert _radial_bias_in_corners(f, one_level) < -0.003  # seen: -0.0056
+    np.testing.assert_allclose(followed, edges.uv[j], atol=1e-9)  # the detector's own
+
+
 def test_a_fit_that_cannot_hold_leaves_the_centroid():
     f = frames(RenderSettings(), n=1)[0]
     blobs, _ = detect_blobs(f.image)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -61,12 +63,16 @@ def disk_radius_px(diameter_mm: float, distance_mm: float, c_mm: float = 12.0) -
 
 # -- geometry ----------------------------------------------------------------
 
+# One level across each target: its intensity centroid is its area centroid (the light's change
+# across a target, the default, pulls it towards the light: test_the_light_falls_across_each_target)
+EVEN = RenderSettings(shading=False)
+
 
 @pytest.mark.parametrize("coded", [False, True])
 def test_head_on_blob_centroid_matches_disk_centroid(rng, coded):
     cam = reference_camera()
     field = grid_of_targets(rng, coded)
-    frame = render_frame(cam, field, reference_pose(90.0, 1000.0))
+    frame = render_frame(cam, field, reference_pose(90.0, 1000.0), EVEN)  # the geometry alone
     assert frame.ids == field.ids and frame.fully_visible.all()
     r_disk = disk_radius_px(10.0 if coded else 6.0, 1000.0)
     # the window must hold the blurred disk but stay clear of a code ring (at 2 R)
@@ -118,8 +124,8 @@ def area_centroid_by_ray_casting(cam: BrownFraser, T_field_camera, radius_mm, uv
 def test_eccentricity_bias_at_60_degrees_has_the_expected_size():
     cam = reference_camera()
     T = reference_pose(60.0, 400.0)
-    big = render_frame(cam, one_target(diameter_mm=20.0), T)
-    small = render_frame(cam, one_target(diameter_mm=10.0), T)
+    big = render_frame(cam, one_target(diameter_mm=20.0), T, EVEN)  # the geometry alone
+    small = render_frame(cam, one_target(diameter_mm=10.0), T, EVEN)
     bias_big = np.linalg.norm(big.uv_disk_centroid[0] - big.uv_true[0])
     bias_small = np.linalg.norm(small.uv_disk_centroid[0] - small.uv_true[0])
     # first-order theory for a disk of radius R at distance Z tilted by 30 deg, on axis:
@@ -234,6 +240,26 @@ def test_brightness_falls_with_distance_squared_and_weakly_with_incidence():
     assert abs(tilted / near - np.cos(np.radians(30.0)) ** 0.5) < 0.02
 
 
+def test_the_light_falls_across_each_target():
+    """Across a target, not only from one to the next: on a head-on plate a point's light goes as
+    its ray's cos(field angle) to the 4 (vignetting) x 2 (distance squared) x 0.5 (incidence), so
+    in a corner a 60 mm disk is ~3 % darker 15 px out from its centre than 15 px in. Evenly lit
+    (``shading=False``) it is one level."""
+    cam = reference_camera()
+    big = one_target(diameter_mm=60.0, xyz=(300.0, 230.0, 0.0))
+    settings = RenderSettings(bit_depth=16, background_dn=0.0, blur_sigma_px=0.0)
+    u0, v0 = np.round(render_frame(cam, big, reference_pose(), settings).uv_true[0]).astype(int)
+    px = np.array([[u0 - 15, v0], [u0 + 15, v0], [u0, v0 - 15], [u0, v0 + 15]], dtype=float)
+    for shading in (True, False):
+        img = render_frame(cam, big, reference_pose(), replace(settings, shading=shading)).image.astype(float)
+        level = img[px[:, 1].astype(int), px[:, 0].astype(int)]
+        rays = cam.rays_from_pixel(px)
+        cos_field = rays[:, 2] / np.linalg.norm(rays, axis=1)
+        model = cos_field**6.5 if shading else np.ones(4)
+        np.testing.assert_allclose(level[1::2] / level[::2], model[1::2] / model[::2], rtol=2e-3)
+        assert (level[0] / level[1] > 1.02) == shading  # the test sees a light that changes
+
+
 def test_unlit_frame_is_only_background_but_still_reports_targets():
     frame = render_frame(reference_camera(), reference_field(), reference_pose(), RenderSettings(lit=False))
     assert len(frame.ids) == 230 and np.all(frame.image == 8)
@@ -345,7 +371,10 @@ def test_a_disk_in_the_corner_covers_the_area_its_rays_hit():
     T = reference_pose()
     xyz = np.array([300.0, 230.0, 0.0])
     frame = render_frame(
-        cam, one_target(diameter_mm=20.0, xyz=tuple(xyz)), T, RenderSettings(blur_sigma_px=0.0, background_dn=0.0)
+        cam,
+        one_target(diameter_mm=20.0, xyz=tuple(xyz)),
+        T,
+        RenderSettings(blur_sigma_px=0.0, background_dn=0.0, shading=False),  # the geometry alone
     )
     img = frame.image.astype(float)
     peak = np.median(img[img > 0.99 * img.max()])  # fully covered pixels

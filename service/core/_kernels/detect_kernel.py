@@ -21,14 +21,22 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 
-from service.core._kernels import contour_kernel, crowd_kernel, edge_kernel, noise_kernel, warm_images
+from service.core._kernels import (
+    contour_kernel,
+    crowd_kernel,
+    edge_kernel,
+    illumination_kernel,
+    noise_kernel,
+    warm_images,
+)
 
 # rows of the float output
 UV, ELLIPSE, FLUX, LEVEL, PEAK, BACKGROUND, SB2, K_SHOT, VAR_BASE, VAR_PER_K = 0, 0, 5, 6, 7, 8, 9, 10, 11, 12
 MISMATCH, NOISE_BG, M3SQ, KURT, KURT_MODEL, FLAT_TOP, VAR_MAJOR, SUMS = 13, 14, 15, 16, 17, 18, 19, 20
 EDGE_UV, EDGE_SIGMA = 27, 29  # the edge fit's centre (2 rows) and sigma; NaN where not asked or not held
 N_SAT = 30  # the window's pixels at the saturation level (also returned as ``n_sat``)
-NF = 31
+LIGHT = 31  # the light's relative gradient per px at the window (2 rows) the edge fit followed; 0 without
+NF = 33
 # A disk with more pixels at the saturation level than this is clipped: measured on its flat top (its
 # plateau says nothing of the shot noise, see assess_kernel) and counted as saturated for the exposure
 CLIPPED_PX = 2
@@ -135,7 +143,8 @@ def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff, edge
     buf : (K,) float32 -- pixel values replacing the image's in crowded windows (others masked)
     boff : (n,) int -- each window's s*s values' offset into ``buf``, -1: read the image
     edge_fit : bool -- also fit each disk's half-level edge (:func:`~service.core._kernels.edge_kernel.edge_fit`,
-        on the image) right after its window, while its pixels are in the cache: rows EDGE_UV, EDGE_SIGMA
+        on the image), its level following the light the windows' plateaus show across the frame
+        (:func:`~service.core._kernels.illumination_kernel.fit_light`): rows EDGE_UV, EDGE_SIGMA, LIGHT
 
     Returns
     -------
@@ -178,13 +187,23 @@ def measure_windows_kernel(img, cu, cv, half, placed, seg, full, buf, boff, edge
             P = buf[o : o + s * s].reshape(s, s)
             n_sat[i], edge[i] = _window(P, 0, 0, img, v0, u0, h, seg[i], full, w, wi, sums, rb, ru, rv, out, i)
         out[N_SAT, i] = n_sat[i]
-        if edge_fit:
-            e = out[:, i]
-            u, v, sigma = edge_kernel.edge_fit(
-                img, e[0], e[1], e[2], e[3], e[4], e[BACKGROUND], px, py, G, g, core, G0, g0
-            )
-            if sigma == sigma:
-                e[EDGE_UV], e[EDGE_UV + 1], e[EDGE_SIGMA] = u, v, sigma
+    if not edge_fit:
+        return out, n_sat, edge
+    # the edges once every plateau is known: the light across the frame, then each disk's edge
+    height, width = img.shape
+    usable = placed & ~edge
+    light = illumination_kernel.fit_light(out[0], out[1], out[LEVEL], out[3], n_sat, usable, width, height, CLIPPED_PX)
+    for i in range(n):
+        if not placed[i]:
+            continue
+        e = out[:, i]
+        gu, gv = illumination_kernel.light_gradient(light, e[0], e[1], width, height)
+        e[LIGHT], e[LIGHT + 1] = gu, gv
+        u, v, sigma = edge_kernel.edge_fit(
+            img, e[0], e[1], e[2], e[3], e[4], e[BACKGROUND], gu, gv, px, py, G, g, core, G0, g0
+        )
+        if sigma == sigma:
+            e[EDGE_UV], e[EDGE_UV + 1], e[EDGE_SIGMA] = u, v, sigma
     return out, n_sat, edge
 
 

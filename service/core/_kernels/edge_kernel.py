@@ -30,21 +30,24 @@ MARGIN_PX = 3  # the window reaches this far beyond the disk's semi-major axis
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _run_ends(line, centre, lo, hi, half):
-    """The linear crossings of ``half`` at both ends of the run of ``line`` above it through index
-    ``centre``, within (lo, hi); (NaN, NaN) when there is no such run or it reaches lo or hi."""
-    if not line[centre] > half:
+def _run_ends(line, centre, lo, hi, half, slope, at):
+    """The linear crossings at both ends of the run of ``line`` through index ``centre`` above the
+    level ``half + slope (i - at)`` (the half level following the light across the disk; ``slope``
+    0: one level), within (lo, hi); (NaN, NaN) when there is no such run or it reaches lo or hi."""
+    if not line[centre] > half + slope * (centre - at):
         return np.nan, np.nan
     i = centre
-    while i > lo and line[i - 1] > half:
+    while i > lo and line[i - 1] > half + slope * (i - 1 - at):
         i -= 1
     j = centre
-    while j < hi and line[j + 1] > half:
+    while j < hi and line[j + 1] > half + slope * (j + 1 - at):
         j += 1
     if i == lo or j == hi:  # the disk reaches the window's edge: no crossing there
         return np.nan, np.nan
     a0, a1, b0, b1 = float(line[i - 1]), float(line[i]), float(line[j]), float(line[j + 1])
-    return (i - 1) + (half - a0) / (a1 - a0), j + (b0 - half) / (b0 - b1)
+    # where the line between the two pixels meets the sloped level
+    x0 = (i - 1) + (half + slope * (i - 1 - at) - a0) / (a1 - a0 - slope)
+    return x0, j + (b0 - half - slope * (j - at)) / (b0 - b1 + slope)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -84,14 +87,16 @@ def edge_scratch(a_max):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def edge_fit(img, cu, cv, a, b, ang, background, px, py, G, g, core, G0, g0):
+def edge_fit(img, cu, cv, a, b, ang, background, gu, gv, px, py, G, g, core, G0, g0):
     """The centre (u, v) px of the disk whose centroid is (``cu``, ``cv``), ellipse semi-axes ``a``,
     ``b`` px at ``ang`` rad and background ``background`` DN, fitted to its half-level edge, and its
     standard deviation px per coordinate, from the edge points' scatter about the conic (their
     algebraic residuals over the conic's RMS gradient, ``n - 5`` degrees of freedom) times
     ``sqrt(2 / n)``; NaN where the fit does not hold (the centre is then the centroid). It holds
     with MIN_POINTS edge points or more, a real ellipse, and a centre within half the disk's minor
-    semi-axis (+ 0.5 px) of the centroid. The rest are :func:`edge_scratch`'s, for a disk this big."""
+    semi-axis (+ 0.5 px) of the centroid. The half level follows the light across the disk: ``gu``,
+    ``gv`` its relative gradient per px (:func:`~service.core._kernels.illumination_kernel.light_gradient`;
+    0, 0: one level). The rest are :func:`edge_scratch`'s, for a disk this big."""
     h, w = img.shape
     if not (np.isfinite(cu) and np.isfinite(cv) and a > 0 and b > 0):
         return cu, cv, np.nan
@@ -108,19 +113,21 @@ def edge_fit(img, cu, cv, a, b, ang, background, px, py, G, g, core, G0, g0):
     half = 0.5 * (background + level)
     if not level > background:
         return cu, cv, np.nan
+    # the half level at (u, v): half + su (u - cu) + sv (v - cv), the core's signal scaled by the light
+    su, sv = 0.5 * (level - background) * gu, 0.5 * (level - background) * gv
     ca, sa = np.cos(ang), np.sin(ang)
     ext_u, ext_v = np.hypot(a * ca, b * sa), np.hypot(a * sa, b * ca)
     npts, inv_a = 0, 1.0 / a  # the points in units of a (well-conditioned)
     for v in range(vr - R, vr + R + 1):  # rows: left and right edges
         if abs(v - cv) <= STEEP * ext_v:
-            x0, x1 = _run_ends(img[v], ur, ur - R, ur + R, half)
+            x0, x1 = _run_ends(img[v], ur, ur - R, ur + R, half + sv * (v - cv), su, cu)
             if x0 == x0:
                 y = (v - cv) * inv_a
                 px[npts], py[npts], px[npts + 1], py[npts + 1] = (x0 - cu) * inv_a, y, (x1 - cu) * inv_a, y
                 npts += 2
     for u in range(ur - R, ur + R + 1):  # columns: top and bottom edges
         if abs(u - cu) <= STEEP * ext_u:
-            y0, y1 = _run_ends(img[:, u], vr, vr - R, vr + R, half)
+            y0, y1 = _run_ends(img[:, u], vr, vr - R, vr + R, half + su * (u - cu), sv, cv)
             if y0 == y0:
                 x = (u - cu) * inv_a
                 px[npts], py[npts], px[npts + 1], py[npts + 1] = x, (y0 - cv) * inv_a, x, (y1 - cv) * inv_a
@@ -190,9 +197,10 @@ def edge_fit(img, cu, cv, a, b, ang, background, px, py, G, g, core, G0, g0):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def edge_centres_kernel(img, uv, e, background):
+def edge_centres_kernel(img, uv, e, background, gradient):
     """Centres (N, 2) px of the disks whose centroids ``uv`` (N, 2), ellipses ``e`` (N, 5) ``(u_c,
-    v_c, a_px, b_px, angle_rad)`` and backgrounds (N,) DN are given (:func:`edge_fit` each), each
+    v_c, a_px, b_px, angle_rad)``, backgrounds (N,) DN and light's relative gradients ``gradient``
+    (N, 2) per px are given (:func:`edge_fit` each), each
     centre's standard deviation (N,) px per coordinate, and whether the fit held (where not: the
     centroid, NaN)."""
     n = uv.shape[0]
@@ -205,7 +213,22 @@ def edge_centres_kernel(img, uv, e, background):
     px, py, G, g, core, G0, g0 = edge_scratch(a_max)
     for k in range(n):
         out[k, 0], out[k, 1], sigma[k] = edge_fit(
-            img, uv[k, 0], uv[k, 1], e[k, 2], e[k, 3], e[k, 4], background[k], px, py, G, g, core, G0, g0
+            img,
+            uv[k, 0],
+            uv[k, 1],
+            e[k, 2],
+            e[k, 3],
+            e[k, 4],
+            background[k],
+            gradient[k, 0],
+            gradient[k, 1],
+            px,
+            py,
+            G,
+            g,
+            core,
+            G0,
+            g0,
         )
     return out, sigma, np.isfinite(sigma)
 
@@ -216,4 +239,5 @@ def warm_up() -> None:
     for img in warm_images((np.uint8, np.uint16), (48, 48)):
         if img.flags.writeable:  # its read-only view, next, shares the disk
             img[20:28, 20:28] = 200
-        edge_centres_kernel(img, np.array([[23.5, 23.5]]), np.array([[23.5, 23.5, 4.0, 4.0, 0.0]]), np.array([0.0]))
+        e = np.array([[23.5, 23.5, 4.0, 4.0, 0.0]])
+        edge_centres_kernel(img, np.array([[23.5, 23.5]]), e, np.array([0.0]), np.zeros((1, 2)))

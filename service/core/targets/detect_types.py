@@ -70,6 +70,10 @@ class Blobs:
         can be coded; :func:`~service.core.targets.detect.measure_windows` does not look and says False)
     saturated : (N,) bool -- its flat top is clipped at the saturation level (more than
         ``CLIPPED_PX`` pixels there): measured all the same, a sign that the exposure is too long
+    light_gradient : (N, 2) float, 1/px -- the light's relative gradient across the disk (d ln L / du,
+        d ln L / dv), fitted to every plateau of the frame, which the edge's half level followed;
+        zeros with intensity centroids or where fewer than ``MIN_DISKS`` plateaus were seen
+        (:mod:`service.core._kernels.illumination_kernel`)
     """
 
     uv: Array
@@ -81,6 +85,7 @@ class Blobs:
     fill: Array
     has_ring: NDArray[np.bool_]
     saturated: NDArray[np.bool_]
+    light_gradient: Array
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])

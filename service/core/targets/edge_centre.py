@@ -4,7 +4,9 @@ The window measurement (:mod:`~service.core.targets.detect_windows`) gives the b
 intensity-weighted centroid. A real target is not evenly bright: retro-reflective sheeting under a
 flash has a gradient and a texture across the disk, a printed dot an uneven ink, and the centroid
 follows them. The half-level edge does not. :func:`edge_centres` fits a conic to the points where
-the disk's rows and columns cross the half level between its background and its core
+the disk's rows and columns cross the half level between its background and its core, a level that
+follows the light across the frame (:mod:`service.core._kernels.illumination_kernel`: with one level
+the edge, too, moved towards the light)
 (:mod:`service.core._kernels.edge_kernel`); a fit on too few points or far from the centroid is not
 used, and the centroid stays. The detector fits each disk right after measuring its window
 (:func:`~service.core._kernels.detect_kernel.measure_windows_kernel`), while its pixels are cached;
@@ -29,12 +31,18 @@ Array = NDArray[np.float64]
 
 
 def edge_centres(
-    image: NDArray[np.generic], uv: Array, ellipses: Array, background_dn: Array
+    image: NDArray[np.generic],
+    uv: Array,
+    ellipses: Array,
+    background_dn: Array,
+    light_gradient: Array | None = None,
 ) -> tuple[Array, Array, NDArray[np.bool_]]:
     """Centres (N, 2) px of the disks measured at the centroids ``uv`` (N, 2) with the ellipses (N, 5)
     ``(u_c, v_c, a_px, b_px, angle_rad)`` over the local backgrounds (N,) DN, fitted to their
     half-level edges; their standard deviations (N,) px per coordinate; and whether each fit held
-    (where not: the centroid, sigma NaN)."""
+    (where not: the centroid, sigma NaN). ``light_gradient`` (N, 2): the light's relative gradient
+    per px across each disk, which its half level follows (the detector's, :attr:`Blobs.light_gradient
+    <service.core.targets.detect_types.Blobs>`); None: an even light."""
     img = np.asarray(image)
     if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16):
         raise ValueError(f"edge centres need a 2-D uint8 or uint16 image, got {img.dtype} of shape {img.shape}")
@@ -44,5 +52,6 @@ def edge_centres(
         c(np.reshape(uv, (-1, 2)), dtype=np.float64),
         c(np.reshape(ellipses, (-1, 5)), dtype=np.float64),
         c(np.reshape(background_dn, (-1,)), dtype=np.float64),
+        c(np.zeros((len(uv), 2)) if light_gradient is None else np.reshape(light_gradient, (-1, 2)), dtype=np.float64),
     )
     return uv_out, sigma, ok

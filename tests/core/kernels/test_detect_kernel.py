@@ -23,6 +23,7 @@ from scipy.special import roots_legendre
 from service.core._kernels import detect_kernel as K
 from service.core._kernels.detect_kernel import assess_kernel, measure_predicted_kernel, measure_windows_kernel
 from service.core._kernels.edge_kernel import edge_centres_kernel
+from service.core._kernels.illumination_kernel import fit_light, light_gradient
 from service.core.targets.detect_types import DetectSettings
 from service.core.targets.detect_windows import assess, assess_constants, measure_all
 
@@ -191,8 +192,15 @@ def test_measured_windows_are_the_numpy_measurement(rng, dtype):
     np.testing.assert_array_equal(with_fit[0][: K.EDGE_UV], out[: K.EDGE_UV])
     np.testing.assert_array_equal(with_fit[1], n_sat)
     np.testing.assert_array_equal(with_fit[2], edge)
+    # the light the edges followed: fitted to the usable windows' plateaus, taken at each centroid
+    h_img, w_img = img.shape
+    o = with_fit[0]
+    coef = fit_light(o[0], o[1], o[K.LEVEL], o[3], n_sat, placed & ~edge, w_img, h_img, K.CLIPPED_PX)
+    for i in np.flatnonzero(placed):
+        assert tuple(o[K.LIGHT : K.LIGHT + 2, i]) == light_gradient(coef, o[0, i], o[1, i], w_img, h_img)
     e = with_fit[0][:, placed]
-    uv_ref, sigma_ref, ok = edge_centres_kernel(img, e[:2].T.copy(), e[:5].T.copy(), e[K.BACKGROUND].copy())
+    light = e[K.LIGHT : K.LIGHT + 2].T.copy()
+    uv_ref, sigma_ref, ok = edge_centres_kernel(img, e[:2].T.copy(), e[:5].T.copy(), e[K.BACKGROUND].copy(), light)
     assert 0.5 * placed.sum() < ok.sum() < placed.sum()  # fits held, and some did not
     np.testing.assert_array_equal(e[K.EDGE_SIGMA], sigma_ref)
     np.testing.assert_array_equal(e[K.EDGE_UV : K.EDGE_UV + 2][:, ok], uv_ref[ok].T)

@@ -19,22 +19,25 @@ from service.sim.render import RenderSettings, render_frame
 from service.sim.scene import reference_camera, reference_field, reference_pose
 
 
-def _run_ends(line, centre, half):
-    """Linear crossings of ``half`` at both ends of the run above it through ``centre``, or None."""
-    above = line > half
+def _run_ends(line, centre, level):
+    """Linear crossings of the sloped ``level`` (one value a pixel of ``line``, linear in the index)
+    at both ends of the run above it through ``centre``, or None."""
+    above = line > level
     if not above[centre]:
         return None
     left, right = np.flatnonzero(~above[:centre]), np.flatnonzero(~above[centre + 1 :]) + centre + 1
     if left.size == 0 or right.size == 0:
         return None  # the run reaches the window's edge
     i, j = left[-1] + 1, right[0] - 1
-    x0 = (i - 1) + (half - line[i - 1]) / (line[i] - line[i - 1])
-    x1 = j + (line[j] - half) / (line[j] - line[j + 1])
+    # the line between two pixels meets the level's line between them: (d_line - d_level) t = -(line - level)
+    x0 = (i - 1) + (level[i - 1] - line[i - 1]) / ((line[i] - line[i - 1]) - (level[i] - level[i - 1]))
+    x1 = j + (line[j] - level[j]) / ((line[j] - line[j + 1]) - (level[j] - level[j + 1]))
     return x0, x1
 
 
-def _reference(image, uv, e, bg):
-    """(centre (2,), sigma) of the disk's edge fit, or None."""
+def _reference(image, uv, e, bg, gradient=(0.0, 0.0)):
+    """(centre (2,), sigma) of the disk's edge fit, or None; its half level scaled by the light
+    ``1 + gu (u - cu) + gv (v - cv)`` about its centroid."""
     img = image.astype(np.float64)
     cu, cv = uv
     a, b, ang = e[2], e[3], e[4]
@@ -49,14 +52,18 @@ def _reference(image, uv, e, bg):
     if not core > bg:
         return None
     half = 0.5 * (bg + core)
+    su, sv = 0.5 * (core - bg) * gradient[0], 0.5 * (core - bg) * gradient[1]
+    us, vs = np.arange(ur - R, ur + R + 1), np.arange(vr - R, vr + R + 1)
     ext_u = np.hypot(a * np.cos(ang), b * np.sin(ang))
     ext_v = np.hypot(a * np.sin(ang), b * np.cos(ang))
     pts = []
     for v in range(vr - R, vr + R + 1):
-        if abs(v - cv) <= STEEP * ext_v and (ends := _run_ends(img[v, ur - R : ur + R + 1], R, half)):
+        level = half + su * (us - cu) + sv * (v - cv)
+        if abs(v - cv) <= STEEP * ext_v and (ends := _run_ends(img[v, ur - R : ur + R + 1], R, level)):
             pts += [(ur - R + x - cu, v - cv) for x in ends]
     for u in range(ur - R, ur + R + 1):
-        if abs(u - cu) <= STEEP * ext_u and (ends := _run_ends(img[vr - R : vr + R + 1, u], R, half)):
+        level = half + su * (u - cu) + sv * (vs - cv)
+        if abs(u - cu) <= STEEP * ext_u and (ends := _run_ends(img[vr - R : vr + R + 1, u], R, level)):
             pts += [(u - cu, vr - R + y - cv) for y in ends]
     if len(pts) < MIN_POINTS:
         return None
@@ -87,10 +94,11 @@ def scene():
     return frame.image, blobs
 
 
-def _check(image, uv, e, bg):
-    got_uv, sigma, ok = edge_centres_kernel(image, uv, e, bg)
+def _check(image, uv, e, bg, gradient=None):
+    gradient = np.zeros((len(uv), 2)) if gradient is None else gradient
+    got_uv, sigma, ok = edge_centres_kernel(image, uv, e, bg, gradient)
     for i in range(len(uv)):
-        ref = _reference(image, uv[i], e[i], bg[i])
+        ref = _reference(image, uv[i], e[i], bg[i], gradient[i])
         assert (ref is not None) == ok[i], i
         if ok[i]:  # the same crossings; sums and a solve in another order: round-off
             np.testing.assert_allclose(got_uv[i], ref[0], rtol=0, atol=1e-9, err_msg=str(i))
@@ -102,11 +110,15 @@ def _check(image, uv, e, bg):
 
 
 @pytest.mark.parametrize("deep", [False, True])
-def test_edge_centres_are_the_numpy_fit(scene, deep):
+@pytest.mark.parametrize("light", [False, True])
+def test_edge_centres_are_the_numpy_fit(scene, deep, light, rng):
+    """With one half level, and with a level following a light across each disk (a gradient of up
+    to 0.3 % a px, as a ring light's fall-off at a frame's corner, and to 1 %)."""
     image, blobs = scene
     image = image.astype(np.uint16) * 257 if deep else image
     bg = blobs.background_dn * (257 if deep else 1)
-    ok = _check(image, blobs.uv, blobs.ellipse, np.ascontiguousarray(bg))
+    gradient = rng.uniform(-0.01, 0.01, (len(blobs), 2)) if light else None
+    ok = _check(image, blobs.uv, blobs.ellipse, np.ascontiguousarray(bg), gradient)
     assert ok.mean() > 0.97
 
 
@@ -125,5 +137,5 @@ def test_poor_starts_no_disk_and_the_border_are_judged_as_numpy_judges_them(scen
     bg[6] = 255.0  # a background above the core: nothing to find
     ok = _check(image, np.ascontiguousarray(uv), np.ascontiguousarray(e), np.ascontiguousarray(bg))
     assert not ok[:7].any() and ok[7:].mean() > 0.9
-    none = edge_centres_kernel(image, np.zeros((0, 2)), np.zeros((0, 5)), np.zeros(0))
+    none = edge_centres_kernel(image, np.zeros((0, 2)), np.zeros((0, 5)), np.zeros(0), np.zeros((0, 2)))
     assert [x.shape for x in none] == [(0, 2), (0,), (0,)]
