@@ -115,6 +115,8 @@ def test_the_running_cell_steers_an_over_or_under_exposed_camera_to_poses(tmp_pa
     assert len(tail) == 20 and all(m.ok for m in tail), [m.reason for m in tail]
     assert health["auto_exposure"]["on"] and 1 <= health["auto_exposure"]["steps"] <= 4
     assert 1000.0 <= health["exposure_us"] <= 4000.0  # the reference scene's exposure is 2000 us
+    # the simulated cell's optics: sharp (blur 0.6 px and the pixel's width), nothing said of the focus
+    assert 0.4 < health["blur_px"] < 1.0 and health["focus"] is None, health
 
 
 def test_without_the_control_an_over_exposed_camera_is_said_to_saturate(tmp_path):

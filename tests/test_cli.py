@@ -310,6 +310,22 @@ def test_measure_warns_when_the_camera_was_calibrated_with_the_other_centres(tmp
     assert r.returncode == 0 and json.loads(r.stdout)["ok"] and "warning" not in r.stderr, r.stderr
 
 
+def test_measure_says_how_blurred_each_image_is_and_when_to_check_the_focus(tmp_path):
+    import cv2
+
+    run("simulate", "-o", str(tmp_path), "--frames", "1")
+    sharp = cv2.imread(str(tmp_path / "frame_0000.png"), cv2.IMREAD_GRAYSCALE)
+    cv2.imwrite(str(tmp_path / "blurred.png"), cv2.GaussianBlur(sharp, (0, 0), 2.0))  # the lens out of focus
+    args = ["measure", "--camera", str(tmp_path / "camera.json"), "--field", str(tmp_path / "field.json")]
+    r = run(*args, str(tmp_path / "frame_0000.png"), str(tmp_path / "blurred.png"))
+    assert r.returncode == 0, r.stderr
+    sharp_out, blurred_out = (json.loads(line) for line in r.stdout.splitlines())
+    # the simulated optics (0.6 px and the pixel's width), then 2 px more: sqrt(0.66^2 + 2^2) = 2.1
+    assert sharp_out["ok"] and 0.5 < sharp_out["blur_px"] < 0.9, sharp_out
+    assert 1.7 < blurred_out["blur_px"] < 2.4, blurred_out
+    assert r.stderr.count("check the lens's focus") == 1 and "blurred.png" in r.stderr, r.stderr
+
+
 def test_demo_measures_the_simulated_cell_live():
     r = run("demo", "--frames", "8", "--laps", "1", "--rate-hz", "200")
     assert r.returncode == 0, r.stderr

@@ -155,6 +155,22 @@ def test_an_out_of_focus_frame_is_measured_above_the_blur_that_joins_disks_to_ri
     far = frames_of(replace(VIEWS[11], distance_mm=1400.0, light=Light(blur_px=3.0)), 1, seed=7)[0]
     out = measurer.measure(far.image).result
     assert not isinstance(out, PoseResult) and "segmentation level at 30%" in out.message, out
+    assert "the targets' edges are blurred" in out.message and "check the lens's focus" in out.message, out
+
+
+@pytest.mark.parametrize("blur_px", [0.6, 1.2, 2.0])
+def test_each_frame_says_how_blurred_its_targets_are(measurer, blur_px):
+    """The blur the frame's disks show (their second moments beyond the disk's own) is the chain's
+    optics' with the pixel's width (1/12 px^2) to 10 % (seen: 0.66, 1.22, 1.87 px against 0.67,
+    1.23, 2.02); beyond BLURRED_PX (1.5 px) the frame says to check the focus."""
+    measurer.reset()
+    view = replace(VIEWS[1], light=replace(VIEWS[1].light, blur_px=blur_px))
+    for frame in frames_of(view, 2, seed=7):
+        out = measurer.measure(frame.image)
+        assert isinstance(out.result, PoseResult) and out.brightness is not None
+        expected = np.hypot(blur_px, np.sqrt(1 / 12))
+        assert abs(out.brightness.blur_px / expected - 1) < 0.1, (out.brightness.blur_px, expected)
+        assert bool(out.brightness.focus_note) == (blur_px > 1.5), out.brightness.focus_note
 
 
 def test_roi_tracking_follows_the_independent_images(measurer):

@@ -124,9 +124,13 @@ def run(args: argparse.Namespace) -> int:
             outcome = measurer.measure(image)
             out = outcome.result.to_dict()
             out["timings_ms"] = {k: round(v, 3) for k, v in outcome.timings_ms.items()}
-            if outcome.brightness is not None and outcome.brightness.n_saturated:
-                out["targets_saturated"] = outcome.brightness.n_saturated
-                print_err(f"posecell measure: {path}: {outcome.brightness.saturation_note}")
+            if (b := outcome.brightness) is not None and b.n_measured:
+                out["blur_px"] = round(b.blur_px, 2)
+            if b is not None and b.n_saturated:
+                out["targets_saturated"] = b.n_saturated
+                print_err(f"posecell measure: {path}: {b.saturation_note}")
+            if b is not None and b.focus_note:
+                print_err(f"posecell measure: {path}: {b.focus_note}")
         out = {"image": str(path), **out}
         failed += not out["ok"]
         print_json(out)

@@ -290,13 +290,17 @@ def _with_calibration_hint(e: SolveError, camera: BrownFraser) -> SolveError:
     )
 
 
-def _with_saturation_hint(e: SolveError, brightness: Brightness) -> SolveError:
-    """``e`` with the saturated targets named when they are a fifth or more of those seen: rejected
-    (``max_saturated_px``), or clipped so far that their rings no longer read."""
+def _with_image_hints(e: SolveError, brightness: Brightness) -> SolveError:
+    """``e`` with the saturated targets named when they are a fifth or more of those seen (rejected,
+    ``max_saturated_px``, or clipped so far that their rings no longer read), and with the blur
+    when it is beyond ``BLURRED_PX``."""
     b = brightness
-    if b.n_saturated < max(2, 0.2 * (b.n_measured + b.n_saturated)):
+    notes = [b.focus_note] if b.focus_note else []
+    if b.n_saturated >= max(2, 0.2 * (b.n_measured + b.n_saturated)):
+        notes.insert(0, b.saturation_note)
+    if not notes:
         return e
-    return SolveError(e.reason, f"{e.message.rstrip('.')}; {b.saturation_note}.", e.details)
+    return SolveError(e.reason, f"{e.message.rstrip('.')}; {'; '.join(notes)}.", e.details)
 
 
 # Blur (a lens out of focus, a near target beyond the depth of field) fills the gap between a coded
@@ -458,7 +462,7 @@ class FrameMeasurer:
                     note = f"again with the segmentation level at {JOINED_LEVEL:.0%} of the targets' brightness"
                     message = f"{again.message.rstrip('.')} ({note}, as for a blurred image)"
                     e = SolveError(again.reason, message, again.details)
-            failure = Failure.from_error(_with_saturation_hint(_with_calibration_hint(e, self.camera), brightness))
+            failure = Failure.from_error(_with_image_hints(_with_calibration_hint(e, self.camera), brightness))
             return Outcome(failure, "full", clock.ms, len(blobs), counts, brightness)
         return Outcome(result, "full", clock.ms, len(blobs), counts, brightness)
 

@@ -641,7 +641,7 @@ class Worker:
                 "held": self.exposure_hold or None,
             }
             if (b := self.brightness.get(name)) is not None:  # the last measured frame's
-                cam.update(targets_saturated=b.n_saturated, saturation=b.saturation_note or None)
+                cam.update(b.health())
         for name, proc in self.processors.items():
             if name not in cams:
                 cams[name] = {"state": str(DeviceState.failed), "error": proc.failed_reason}

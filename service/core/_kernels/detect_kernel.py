@@ -36,7 +36,8 @@ MISMATCH, NOISE_BG, M3SQ, KURT, KURT_MODEL, FLAT_TOP, VAR_MAJOR, SUMS = 13, 14, 
 EDGE_UV, EDGE_SIGMA = 27, 29  # the edge fit's centre (2 rows) and sigma; NaN where not asked or not held
 N_SAT = 30  # the window's pixels at the saturation level (also returned as ``n_sat``)
 LIGHT = 31  # the light's relative gradient per px at the window (2 rows) the edge fit followed; 0 without
-NF = 33
+BLUR = 33  # the blur's variance px^2 the second moments show beyond the disk's own (optics, focus, pixel)
+NF = 34
 # A disk with more pixels at the saturation level than this is clipped: measured on its flat top (its
 # plateau says nothing of the shot noise, see assess_kernel) and counted as saturated for the exposure
 CLIPPED_PX = 2
@@ -440,7 +441,7 @@ def _window(P, pv, ph, img, v0, u0, h, seg, full, w, wi, sums, rb, ru, rv, out, 
     out[VAR_PER_K, i], out[MISMATCH, i] = half_tr / S, mismatch
     out[NOISE_BG, i] = np.sqrt(2.0 / np.pi * sb2) * _maximum(a0 - area, 0.0) / level
     out[M3SQ, i], out[KURT, i], out[KURT_MODEL, i] = m3sq, kurt, kurt_model
-    out[FLAT_TOP, i], out[VAR_MAJOR, i] = 1.0 - blur / (half_tr - root), var_major
+    out[FLAT_TOP, i], out[VAR_MAJOR, i], out[BLUR, i] = 1.0 - blur / (half_tr - root), var_major, blur
     for j in range(7):
         out[SUMS + j, i] = sums[j]
     return ns, crossed

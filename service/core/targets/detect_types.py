@@ -74,6 +74,8 @@ class Blobs:
         d ln L / dv), fitted to every plateau of the frame, which the edge's half level followed;
         zeros with intensity centroids or where fewer than ``MIN_DISKS`` plateaus were seen
         (:mod:`service.core._kernels.illumination_kernel`)
+    blur_px : (N,) float, px -- the blur's sigma the disk's second moments show beyond its own
+        (optics, focus, the pixel's width: ~0.3 px for a sharp image)
     """
 
     uv: Array
@@ -86,6 +88,7 @@ class Blobs:
     has_ring: NDArray[np.bool_]
     saturated: NDArray[np.bool_]
     light_gradient: Array
+    blur_px: Array
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])

@@ -102,6 +102,7 @@ class Measured:
     edge_uv: Array  # (n, 2) px: the centre fitted to the disk's edge, NaN where not asked or not held
     edge_sigma: Array
     light_gradient: Array  # (n, 2) 1/px: the light's relative gradient the edge's level followed; 0 without
+    blur: Array  # px^2: the blur's variance beyond the disk's own
     n_sat: NDArray[np.intp]  # pixels at the saturation level
     edge: NDArray[np.bool_]
     table: Array  # (NF, n): the kernel's output, whose rows the fields above are
@@ -175,6 +176,7 @@ def measure_all(
         edge_uv=out[K.EDGE_UV : K.EDGE_UV + 2].T,
         edge_sigma=out[K.EDGE_SIGMA],
         light_gradient=out[K.LIGHT : K.LIGHT + 2].T,
+        blur=out[K.BLUR],
         n_sat=n_sat,
         edge=edge,
         table=out,
@@ -246,6 +248,7 @@ def blobs_from(
         has_ring=np.zeros(index.size, dtype=bool) if has_ring is None else has_ring[index],
         saturated=meas.n_sat[index] > CLIPPED_PX,
         light_gradient=meas.light_gradient[index],
+        blur_px=np.sqrt(meas.blur[index]),
     )
 
 
@@ -265,4 +268,5 @@ def blobs_from_table(table: Array, sigma: Array, fill: Array) -> Blobs:
         has_ring=np.zeros(sigma.size, dtype=bool),
         saturated=table[K.N_SAT] > CLIPPED_PX,
         light_gradient=table[K.LIGHT : K.LIGHT + 2].T,
+        blur_px=np.sqrt(table[K.BLUR]),
     )

@@ -116,7 +116,7 @@ def _measure_reference(P, img_win, h, seg, full):
     row[K.VAR_PER_K], row[K.MISMATCH] = np.trace(M) / 2 / S, mismatch
     row[K.NOISE_BG] = np.sqrt(2 / np.pi * sb2) * max(a0 - area, 0) / level
     row[K.M3SQ], row[K.KURT], row[K.KURT_MODEL] = m3sq, kurt, kurt_model
-    row[K.FLAT_TOP], row[K.VAR_MAJOR] = 1 - s / lam[0], var_major
+    row[K.FLAT_TOP], row[K.VAR_MAJOR], row[K.BLUR] = 1 - s / lam[0], var_major, s
     row[K.SUMS : K.SUMS + 7] = sums
     return row, n_sat, m_used <= rb.size - 2
 
