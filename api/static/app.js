@@ -248,10 +248,12 @@
       }
       // clipped disks are measured, but they say the exposure is too long (the sentence: on hover)
       if (isNum(c.targets_saturated) && c.targets_saturated > 0) facts.push(`${c.targets_saturated} targets saturated`);
+      // how sharp the targets are; beyond 1.5 px the focus sentence says what to check (on hover too)
+      if (isNum(c.blur_px) && c.blur_px > 0) facts.push(`blur ${fix(c.blur_px, 2)} px${c.focus ? " (out of focus)" : ""}`);
       const off = offsets[name];
       if (off && isNum(off.offset_ms)) facts.push(`clock offset ${fix(off.offset_ms, 2)} ± ${fix(off.sigma_ms, 2)} ms`);
       card.querySelector(".device-facts").textContent = facts.join(" · ");
-      card.querySelector(".device-facts").title = c.saturation || "";
+      card.querySelector(".device-facts").title = [c.saturation, c.focus].filter(Boolean).join("; ");
       // a device that is not ok always says why, even when the driver gave no sentence
       const error = c.error || (c.state !== "ok" ? `camera ${name} is ${c.state}` : "");
       card.querySelector(".device-error").textContent = error;

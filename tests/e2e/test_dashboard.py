@@ -375,6 +375,9 @@ def test_unplugged_camera_card_says_disconnected_and_why_then_recovers(page: Pag
 def test_an_overexposed_camera_card_counts_its_saturated_targets(page: Page, cell: LiveServer) -> None:
     cam = '[data-camera="cam0"]'
     page.wait(f"document.querySelector('{cam}')?.dataset.state === 'ok'", "camera cam0 ok")
+    # the simulated optics are sharp: the card gives their blur (0.66 px) and says nothing of the focus
+    page.wait(f"/blur 0\\.\\d+ px/.test(document.querySelector('{cam} .device-facts').textContent)", "the blur", 15)
+    assert "out of focus" not in page.text(f"{cam} .device-facts")
     worker = cell.worker
     before = worker.settings.cameras[0]
     over = before.model_copy(
