@@ -29,6 +29,11 @@ from service.workflows.reports import circle_report, iso9283_report, table1_repo
 from tests.api.conftest import free_port, run_server
 
 K_SIGMA = 4.0
+# A stop is seen from one camera pose: its measured barycentre carries that view's bias, which no
+# averaging of its frames removes (the simulated cell's pose error a view: 0.01-0.03 mm, `posecell
+# bench speed`). At P3 it is 0.023-0.029 mm, 3.2-4.1 sigma of the frames' scatter alone (3.2 before the
+# renders shaded each target with the light across it); the AP bound counts it, 1 sigma of 0.01 mm.
+VIEW_BIAS_MM = 0.01
 
 
 @pytest.fixture(scope="module")
@@ -168,9 +173,10 @@ def test_iso9283_ap_of_the_simulated_arm_is_its_kinematic_error(cell, tmp_path):
         q = sim.nominal.ik(T_cmd, sim.q_home_rad)
         known = sim.true.fk(q)[:3, 3] - T_cmd[:3, 3]
         ap = np.array([figures["AP_x_mm"], figures["AP_y_mm"], figures["AP_z_mm"]])
-        bound = K_SIGMA * t["details"]["sigma_barycentre_mm"][name]
+        sigma = t["details"]["sigma_barycentre_mm"][name]
+        bound = K_SIGMA * float(np.hypot(sigma, VIEW_BIAS_MM))
         assert np.linalg.norm(ap - known) < bound, (name, ap, known, bound)
-        assert np.linalg.norm(known) > 10 * bound  # the error measured is far above the noise
+        assert np.linalg.norm(known) > 10 * K_SIGMA * sigma  # the error measured is far above the noise
     # `posecell report iso9283` on the exported stops gives the same figures
     path = tmp_path / "iso.csv"
     path.write_text("\n".join([",".join(rows[0]), *[",".join(r.values()) for r in rows]]) + "\n")

@@ -1,16 +1,19 @@
 """The edge centres of :mod:`service.core.targets.edge_centre`, compiled (numba).
 
 Each disk's edge is found where its rows and its columns cross the half level between its
-background and its core (linear interpolation between the two pixels either side), only where the
-row or column crosses the edge steeply (within 0.75 of the disk's half extent from its centre
-across them); a direct least-squares conic through those points gives the centre. Pixels, not
+background and its core, a level that follows the light across the disk where it falls (the ring
+light's beam, the lens's vignetting: :mod:`service.core._kernels.illumination_kernel`; at one
+level the centre moved towards the light), by linear interpolation between the two pixels either
+side, only where the row or column crosses the edge steeply (within 0.75 of the disk's half extent
+from its centre across them); a direct least-squares conic through those points gives the centre. Pixels, not
 bilinear samples along rays (the code reader's re-fit, :func:`~service.core._kernels.decode_kernel._refine`):
 as precise on rendered and real images and ~9x cheaper (~0.6-0.9 us a disk of the reference scene).
 The blur moves a curved edge inwards point-symmetrically, which leaves the centre where it is.
 
 :func:`edge_fit` fits one disk; the window kernel
-(:func:`~service.core._kernels.detect_kernel.measure_windows_kernel`) calls it right after each
-window, :func:`edge_centres_kernel` for disks given (:func:`service.core.targets.edge_centre.edge_centres`).
+(:func:`~service.core._kernels.detect_kernel.measure_windows_kernel`) calls it for each window once
+the light is fitted to all of their plateaus, :func:`edge_centres_kernel` for disks given
+(:func:`service.core.targets.edge_centre.edge_centres`).
 """
 
 from __future__ import annotations

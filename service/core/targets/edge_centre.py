@@ -3,14 +3,14 @@
 The window measurement (:mod:`~service.core.targets.detect_windows`) gives the background-corrected
 intensity-weighted centroid. A real target is not evenly bright: retro-reflective sheeting under a
 flash has a gradient and a texture across the disk, a printed dot an uneven ink, and the centroid
-follows them. The half-level edge does not. :func:`edge_centres` fits a conic to the points where
-the disk's rows and columns cross the half level between its background and its core, a level that
-follows the light across the frame (:mod:`service.core._kernels.illumination_kernel`: with one level
-the edge, too, moved towards the light)
-(:mod:`service.core._kernels.edge_kernel`); a fit on too few points or far from the centroid is not
-used, and the centroid stays. The detector fits each disk right after measuring its window
-(:func:`~service.core._kernels.detect_kernel.measure_windows_kernel`), while its pixels are cached;
-:func:`edge_centres` fits given disks.
+follows them. The half-level edge follows them far less. :func:`edge_centres` fits a conic to the
+points where the disk's rows and columns cross the half level between its background and its core
+(:mod:`service.core._kernels.edge_kernel`), a level that follows the light fitted across the frame
+(:mod:`service.core._kernels.illumination_kernel`: at one level the edge, too, moved towards the
+light); a fit on too few points or far from the centroid is not used, and the centroid stays. The
+detector fits each disk once all windows are measured and the light is fitted to their plateaus
+(:func:`~service.core._kernels.detect_kernel.measure_windows_kernel`); :func:`edge_centres` fits
+given disks.
 
 Measured (``posecell calibrate camera`` on MicMac's real coded panel, 20 images, 3359
 observations): self-calibration sigma0 0.029 px with centroids, 0.014 px with edge centres, and a
