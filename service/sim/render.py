@@ -437,8 +437,16 @@ def _light_gradient(camera: BrownFraser, p0: Array, normal: Array, ex: Array, ey
         p = p0 + step_mm * axis
         dln[:, k] = (np.log(_relative_level(p, normal)) - ln0) / step_mm
         J[:, :, k] = (camera.pixel_from_camera(p) - uv0) / step_mm
+    # J' g = d ln L / d(x, y) by Cramer's rule: no LAPACK call in the render process, whose BLAS threads
+    # spun between renders on a CPU it shares with the service (a 20 Hz stream fell to 5-7 Hz)
+    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 1, 0] * J[:, 0, 1]
     with np.errstate(invalid="ignore", divide="ignore"):
-        g = np.linalg.solve(np.transpose(J, (0, 2, 1)), dln[:, :, None])[:, :, 0] if len(p0) else np.zeros((0, 2))
+        g = np.column_stack(
+            [
+                (dln[:, 0] * J[:, 1, 1] - J[:, 1, 0] * dln[:, 1]) / det,
+                (J[:, 0, 0] * dln[:, 1] - J[:, 0, 1] * dln[:, 0]) / det,
+            ]
+        )
     return np.where(np.isfinite(g), g, 0.0)
 
 
