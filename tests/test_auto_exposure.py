@@ -180,9 +180,12 @@ def test_a_held_exposure_control_takes_no_step_until_released(tmp_path):
         n_held = len(got)
         worker.hold_exposure("")
         deadline = time.monotonic() + 60.0
-        while time.monotonic() < deadline and worker.health()["cameras"]["cam0"]["auto_exposure"]["steps"] < 1:
+        # a step is counted when it is decided, and the camera takes it after: wait for both
+        while time.monotonic() < deadline:
+            released = worker.health()["cameras"]["cam0"]
+            if released["auto_exposure"]["steps"] >= 1 and released["exposure_us"] < 8000.0:
+                break
             time.sleep(0.1)
-        released = worker.health()["cameras"]["cam0"]
     finally:
         worker.stop()
     assert held["auto_exposure"] == {"on": True, "steps": 0, "held": "accuracy test 1 (table1) is running"}

@@ -27,9 +27,18 @@ def test_ur_driver_reads_the_simulated_arm_at_125_hz_through_the_rtde_stand_in()
         try:
             robot.open()
             time.sleep(1.5)
-            now = time.monotonic_ns()
-            window = robot.samples_between(now - int(1e9), now)
-            assert len(window) >= 0.8 * 125
+            # the last second's samples, looked at for up to 10 s: this VM has stalled for over a
+            # second at times (a whole-suite run on 2026-12-06 saw none in one second, the link lost)
+            counts = []
+            deadline = time.monotonic() + 10.0
+            while time.monotonic() < deadline:
+                now = time.monotonic_ns()
+                window = robot.samples_between(now - int(1e9), now)
+                counts.append(len(window))
+                if len(window) >= 0.8 * 125:
+                    break
+                time.sleep(0.5)
+            assert len(window) >= 0.8 * 125, f"samples in the last second, every 0.5 s: {counts}"
             s = window[-1]
             # the controller's nominal belief at that instant (encoder noise ~0.01 mm, delivery < 5 ms)
             t_cell = (s.t_host_ns - epoch) * 1e-9
