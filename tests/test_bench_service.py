@@ -42,6 +42,8 @@ def test_a_row_of_the_service_benchmark_is_measured_from_the_messages():
     assert 0.0 <= row["lost_fraction"] < 0.8
     assert 0.0 < row["ws_p50_ms"] <= row["ws_p99_ms"] <= row["ws_max_ms"] < 5000.0
     assert row["commit_p99_ms"] > 0.0 and row["cpu_ms_per_frame"] > 0.0
+    host = row["host"]  # the host watched over the clients' window (service/bench/stalls.py)
+    assert host is not None and 2.5 < host.seconds < 10.0 and 0.0 <= host.p99_ms <= host.max_ms
     # the replay plays back and forth: no jump of the arm for the ROI tracking to lose (a wrap
     # every 100 frames cost two full frames, 2 % of them, and was the p99)
     assert row["full_frames"] == 0

@@ -45,6 +45,7 @@ import numpy as np
 import orjson
 
 from service.bench.child import health, serve_child, wait_ready
+from service.bench.stalls import TICK_S, HostWatch
 from service.bench.ws_load import read_streams
 from service.core.targets.detect_types import DetectSettings
 
@@ -207,7 +208,8 @@ def _measure(
     wait_ready(address, timeout_s=300.0)
     time.sleep(warmup_s)  # the ROI tracking locked on, the clock fits settled
     h0, cpu0 = health(address), _cpu_s(pid)
-    probe = _clients(address, n_clients, seconds, pose_only)
+    with HostWatch() as watch:  # a p99 over a stretch where the host itself stopped says so
+        probe = _clients(address, n_clients, seconds, pose_only)
     h1, cpu1 = health(address), _cpu_s(pid)
     if len(probe) < 2:
         raise RuntimeError(f"{rate_hz} Hz, {n_clients} clients: the probe received {len(probe)} results")
@@ -235,6 +237,7 @@ def _measure(
         "full_frames": h1["processing"]["full"] - h0["processing"]["full"],
         # per stage (STAGES): (p50, p99) ms
         "stages_ms": [(_quantile(list(c), 0.5), _quantile(list(c), 0.99)) for c in stages.T],
+        "host": watch.result,
     }
 
 
@@ -257,15 +260,17 @@ def run(
     measured_as = centre or DetectSettings().centre  # None: the service's default
     lines = [
         "| camera Hz | clients | results/s | lost | exposure → WS p50 / p99 / max ms "
-        "| exposure → commit p99 ms | CPU ms/frame |",
-        "|---:|---:|---:|---:|---:|---:|---:|",
+        "| exposure → commit p99 ms | CPU ms/frame | host: sleep late p99 / max ms |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
+        host = r["host"]
         lines.append(
             f"| {r['rate_hz']:.0f} | {r['clients']}{' (pose only)' if r['pose_only'] else ''} "
             f"| {r['results_per_s']:.0f} | {100 * r['lost_fraction']:.1f} % "
             f"| {r['ws_p50_ms']:.1f} / {r['ws_p99_ms']:.1f} / {r['ws_max_ms']:.1f} | {r['commit_p99_ms']:.1f} "
-            f"| {r['cpu_ms_per_frame']:.2f} |"
+            f"| {r['cpu_ms_per_frame']:.2f} "
+            f"| {'-' if host is None else f'{host.p99_ms:.1f} / {host.max_ms:.0f}'} |"
         )
     lines += [
         "",
@@ -282,6 +287,13 @@ def run(
         )
     lines.append("")
     lines += [f"- *{name}*: {what}" for name, what in STAGES]
+    lines.append(
+        f"- *host*: how late a process that only sleeps {TICK_S * 1e3:g} ms at a time woke meanwhile "
+        "(`service/bench/stalls.py`): the host's own scheduling, whatever posecell does"
+    )
+    stalled = [(r, r["host"]) for r in rows if r["host"] is not None and r["host"].stalls]
+    for r, host in stalled:
+        lines.append(f"- {r['rate_hz']:.0f} Hz, {r['clients']} clients: {host.sentence()}")
     lines.append(
         f'\n`posecell serve` in a child process, the replay camera (`source = "sim"`), ROI tracking, '
         f"{'edge centres' if measured_as == 'edge' else 'intensity centroids'} "

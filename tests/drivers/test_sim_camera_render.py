@@ -19,12 +19,14 @@ from drivers.camera import sim_render
 from drivers.camera.sim import MIN_SMEAR_PX, REFERENCE_EXPOSURE_US, SimCamera
 from drivers.camera.sim_render import FrameRenderer, RenderJob
 from drivers.camera.sim_render_child import render_job
+from service.bench.stalls import HostStalls, HostWatch
 from service.sim.cell import CellConfig, SimCell
 from service.sim.render import RenderSettings, image_motion_px
 from tests.host_speed import allowed_gaps, sim_render_ms
 
 LIT = StrobeSettings(enabled=True, line="Line1", source="ExposureActive")
 REPO = Path(__file__).resolve().parents[2]
+STALLED_MS = 200.0  # the host stopped this long during a timed run: it is run once more
 READY_TIMEOUT_S = 30.0  # a fresh interpreter's imports and warm-up on a loaded machine
 
 
@@ -267,30 +269,44 @@ def test_frames_asked_for_ahead_follow_a_move_commanded_after_them():
     assert np.all(np.diff([f.seq for f in frames]) == 1)
 
 
-@pytest.mark.slow
-def test_at_20_hz_under_a_gil_holding_load_the_camera_delivers_its_frames_without_gaps():
-    # in a fresh interpreter: the subject is the camera under the load it is given (tests/drivers/gil_load_probe.py)
-    out = subprocess.run(
-        [sys.executable, "-m", "tests.drivers.gil_load_probe"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+def _gil_load_run() -> tuple[dict, HostStalls | None]:
+    """The probe's run (tests/drivers/gil_load_probe.py: in a fresh interpreter, so that the subject is
+    the camera under the load it is given), and the host's stalls meanwhile."""
+    with HostWatch() as watch:
+        out = subprocess.run(
+            [sys.executable, "-m", "tests.drivers.gil_load_probe"],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
     assert out.returncode == 0, out.stderr[-2000:]
     run = json.loads(out.stdout.strip().splitlines()[-1])
-    assert "error" not in run, run
-    seqs = np.array(run["seqs"])
-    assert seqs.size >= 2, run
-    gaps = int(np.sum(np.diff(seqs) - 1))
-    # a gap is a render later than its period: none where the renderer has room (tests/host_speed.py)
-    allowed = allowed_gaps(int(seqs[-1] - seqs[0] + 1))
-    slowest = sorted(run["fetch_ms"])[-3:]
-    assert gaps <= allowed, f"{gaps} frames skipped of {seqs[-1] - seqs[0] + 1} ({sim_render_ms():.0f} ms a render)"
+    assert "error" not in run and len(run["seqs"]) >= 2, run
+    return run, watch.result
+
+
+def _too_few(run: dict, allowed: int) -> bool:
     # every frame the render process makes: 20 Hz where it renders within the period
     rate_hz = min(20.0, 1000.0 / max(run["child_ms"], 1.0))
-    assert seqs.size >= 0.95 * rate_hz * run["elapsed_s"] - allowed, (
+    return len(run["seqs"]) < 0.95 * rate_hz * run["elapsed_s"] - allowed
+
+
+@pytest.mark.slow
+def test_at_20_hz_under_a_gil_holding_load_the_camera_delivers_its_frames_without_gaps():
+    run, host = _gil_load_run()
+    seqs = np.array(run["seqs"])
+    allowed = allowed_gaps(int(seqs[-1] - seqs[0] + 1))
+    if _too_few(run, allowed) and host is not None and host.stalled_ms > STALLED_MS:
+        run, host = _gil_load_run()  # the host stopped meanwhile (measured apart): measured again
+        seqs = np.array(run["seqs"])
+        allowed = allowed_gaps(int(seqs[-1] - seqs[0] + 1))
+    gaps = int(np.sum(np.diff(seqs) - 1))
+    # a gap is a render later than its period: none where the renderer has room (tests/host_speed.py)
+    assert gaps <= allowed, f"{gaps} frames skipped of {seqs[-1] - seqs[0] + 1} ({sim_render_ms():.0f} ms a render)"
+    assert not _too_few(run, allowed), (
         f"{seqs.size} frames in {run['elapsed_s']:.2f} s, the render process at {run['child_ms']:.0f} ms a frame; "
-        f"{run['timeouts']} timeouts, the slowest fetches {slowest} ms"
+        f"{run['timeouts']} timeouts, the slowest fetches {sorted(run['fetch_ms'])[-3:]} ms; "
+        f"{host.sentence() if host else 'the host not watched'}"
     )
     assert set(run["renders"]) == {"child"} and run["restarts"] == 0
