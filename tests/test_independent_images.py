@@ -192,6 +192,26 @@ def test_roi_tracking_follows_the_independent_images(measurer):
     assert 0.004 < rms < 0.03 and max(roi.pose_mm) < 0.06, (rms, roi.pose_mm)
 
 
+def test_roi_tracking_follows_an_out_of_focus_path(measurer):
+    """Blurred by 2.5 px, a disk's tail reaches 3 px beyond its edge at the segmentation level: ROI
+    windows with the fixed 3 px rim refused it as too big and kept 78 % of the targets (41 of 269
+    coded; seen 2026-12-06). Their rim now follows the last frame's blur (BLUR_RIM_SIGMAS)."""
+    measurer.reset()
+    roi = Score()
+    modes = []
+    light = replace(VIEWS[11].light, blur_px=2.5)
+    for k, frame in enumerate(path_frames(6, seed=3, light=light)):
+        probe = Score()
+        modes.append(measure_posecell(measurer, frame, probe, t_s=k * 0.004))
+        if modes[-1] == "roi":
+            roi.merge(probe)
+    assert modes[0] == "full" and modes[1:].count("roi") >= 4, modes
+    # seen: 2038 of 2037 over 9 frames, 269 coded (one more than "visible", whose disk is cut by the border)
+    assert roi.failed == 0 and roi.wrong == 0 and roi.found >= 0.98 * roi.visible, (roi.found, roi.visible)
+    assert roi.coded >= 0.9 * 30 * modes[1:].count("roi"), roi.coded
+    assert max(roi.pose_mm) < 0.08, roi.pose_mm
+
+
 def _wall_errors(measurer: FrameMeasurer, frames, t_s=None) -> tuple[Score, np.ndarray, np.ndarray, int]:
     """posecell on ``frames`` of the corner: its score, the centre errors (k, 2) px of the floor's and
     of the wall's targets, and the wall's coded targets named."""

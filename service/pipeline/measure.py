@@ -201,6 +201,9 @@ class Outcome:
 
 #: ROI windows about precise predictions allow this fraction of ``roi_prediction_error_px``
 TIGHT_SLACK = 0.25
+#: An ROI window's rim lies this many of the last frame's blur sigmas beyond the disk (3 px at least): a
+#: disk blurred by 2.5 px reached the 3 px rim at the segmentation level and was refused as too big
+BLUR_RIM_SIGMAS = 2.5
 #: A target's image at the far end of the range is at least this share of its head-on disk (seen at up
 #: to 75 deg, thresholded); at the near end at most this many times it (blur and the threshold's growth)
 MIN_AREA_SHARE, MAX_AREA_FACTOR = 0.25, 1.5
@@ -350,6 +353,7 @@ class FrameMeasurer:
                 detect=detect_settings_for_range(self.settings.detect, field, camera, self.settings.range_mm),
             )
         self._roi_detect = self.settings.detect  # with the last full frame's noise, for the ROI windows' levels
+        self._blur_px = 0.0  # the last frame's blur (its disks' median edge sigma), for the ROI windows' rims
         self._history: deque[PoseSample] = deque(maxlen=2)
         self._mask: NDArray[np.uint8] | None = None  # detect_blobs' scratch, reused frame after frame
         self._ids = np.array(field.ids, dtype=object)  # ids by field row, for fancy indexing
@@ -396,16 +400,19 @@ class FrameMeasurer:
                 slack = 1.0 if len(self._history) >= 2 else 2.5
                 out = self._measure_roi(image, T_pred, slack)
                 if out is not None:
-                    self._remember(out.result, t_s)
+                    self._remember(out, t_s)
                     return out
         out = self._measure_full(image)
         if t_s is not None:
-            self._remember(out.result, t_s)
+            self._remember(out, t_s)
         return out
 
     # -- internals -----------------------------------------------------------
 
-    def _remember(self, result: PoseResult | Failure, t_s: float) -> None:
+    def _remember(self, out: Outcome, t_s: float) -> None:
+        result = out.result
+        if out.brightness is not None and out.brightness.n_measured > 0:
+            self._blur_px = out.brightness.blur_px
         if isinstance(result, PoseResult):
             self._history.append(PoseSample(np.asarray(result.T_field_camera), t_s))
         else:
@@ -646,7 +653,8 @@ class FrameMeasurer:
         return rows_ok, uv, blobs
 
     def _window_half_size(self, rows: NDArray[np.int64], depth: Array, slack: float = 1.0) -> NDArray[np.int64]:
-        """Half window (px) per target at ``depth`` (mm): the disk's image radius, the blur, and the prediction error.
+        """Half window (px) per target at ``depth`` (mm): the disk's image radius, the blur (the last frame's), and
+        the prediction error.
 
         A coded target's ring may reach into its window in an oblique view: it is masked
         (:meth:`_measure_targets`).
@@ -658,4 +666,5 @@ class FrameMeasurer:
             depth,
             float(self.camera.mean_pixel_size_mm),
             slack * self.settings.roi_prediction_error_px,
+            max(3.0, BLUR_RIM_SIGMAS * self._blur_px),
         )

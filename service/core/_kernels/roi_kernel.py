@@ -16,16 +16,16 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def window_half_size_kernel(radius_c, rows, depth, pixel_mm, allowance_px):
+def window_half_size_kernel(radius_c, rows, depth, pixel_mm, allowance_px, rim_px):
     """Half window (n,) px per target ``rows`` (n,) of the field at ``depth`` (n,) mm: the disk's image
     radius ``radius_c / max(depth, 1) / pixel_mm`` (``radius_c``: radius mm times c mm, per field row),
-    3 px of blur and ``allowance_px`` for the prediction error; at least 3 px. A coded target's ring
+    ``rim_px`` for its blur and ``allowance_px`` for the prediction error; at least 3 px. A coded target's ring
     may reach into it: :func:`ring_masks_kernel` keeps it out."""
     n = rows.size
     half = np.empty(n, dtype=np.int64)
     for i in range(n):
         r_px = radius_c[rows[i]] / max(depth[i], 1.0) / pixel_mm
-        half[i] = int(max(np.ceil(r_px + 3.0 + allowance_px), 3.0))
+        half[i] = int(max(np.ceil(r_px + rim_px + allowance_px), 3.0))
     return half
 
 
@@ -117,7 +117,7 @@ def gather_found_kernel(found, blob_uv, rows, uv_pred):
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels for the types the pipeline passes."""
     rows = np.arange(3, dtype=np.int64)
-    window_half_size_kernel(np.full(3, 60.0), rows, np.full(3, 1000.0), 0.0067, 1.0)
+    window_half_size_kernel(np.full(3, 60.0), rows, np.full(3, 1000.0), 0.0067, 1.0, 3.0)
     ring_masks_kernel(
         np.eye(3),
         np.array([0.0, 0.0, 1000.0]),

@@ -16,10 +16,10 @@ def test_window_sizes_equal_the_numpy_formula(rng):
     for _ in range(20):
         rows = rng.choice(300, 230, replace=False)
         depth = rng.uniform(-50.0, 3000.0, 230)  # below 1 mm too
-        allowance = rng.uniform(0.5, 10.0)
+        allowance, rim = rng.uniform(0.5, 10.0), rng.uniform(3.0, 8.0)
         r_px = radius_mm[rows] * c_mm / np.maximum(depth, 1.0) / pixel_mm
-        expected = np.maximum(np.ceil(r_px + 3.0 + allowance), 3).astype(np.int64)
-        got = window_half_size_kernel(radius_mm * c_mm, rows, depth, pixel_mm, allowance)
+        expected = np.maximum(np.ceil(r_px + rim + allowance), 3).astype(np.int64)
+        got = window_half_size_kernel(radius_mm * c_mm, rows, depth, pixel_mm, allowance, rim)
         np.testing.assert_array_equal(got, expected)
 
 
