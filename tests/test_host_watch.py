@@ -6,7 +6,7 @@ import os
 import signal
 import time
 
-from service.bench.stalls import STALL_MS, HostStalls, HostWatch
+from service.bench.stalls import STALL_MS, HostStalls, HostWatch, steal_pct
 
 
 def test_a_stopped_host_is_seen_as_a_stall_at_its_time_and_length():
@@ -36,3 +36,13 @@ def test_the_sentence_says_when_there_was_no_stall():
     assert r.stalled_ms == 0.0
     two = HostStalls(tick_ms=2.0, seconds=2.0, p99_ms=0.3, max_ms=900.0, stalls=((0.5, 400.0), (1.2, 900.0)))
     assert two.stalled_ms == 1300.0 and "2 stalls over 100 ms (400 ms at 0.5 s, 900 ms at 1.2 s)" in two.sentence()
+
+
+def test_the_hypervisors_share_is_the_steal_columns_of_the_cpu_time():
+    assert steal_pct([100, 0, 10, 880, 0, 0, 0, 10], [190, 0, 20, 960, 0, 0, 0, 30]) == 10.0
+    assert steal_pct(None, [1] * 8) is None and steal_pct([1] * 8, [1] * 8) is None  # unknown, no time passed
+    r = HostStalls(tick_ms=2.0, seconds=2.0, p99_ms=0.3, max_ms=1.2, stalls=(), steal_pct=12.5)
+    assert r.sentence().startswith("the host over 2.0 s, 12.5 % of the CPUs' time stolen by the hypervisor: ")
+    with HostWatch() as watch:  # on Linux, read from /proc/stat
+        time.sleep(0.3)
+    assert watch.result is not None and watch.result.steal_pct is not None and 0.0 <= watch.result.steal_pct <= 100.0

@@ -45,7 +45,7 @@ import numpy as np
 import orjson
 
 from service.bench.child import health, serve_child, wait_ready
-from service.bench.stalls import TICK_S, HostWatch
+from service.bench.stalls import TICK_S, HostStalls, HostWatch
 from service.bench.ws_load import read_streams
 from service.core.targets.detect_types import DetectSettings
 
@@ -241,6 +241,11 @@ def _measure(
     }
 
 
+def _host_cell(host: HostStalls) -> str:
+    steal = "-" if host.steal_pct is None else f"{host.steal_pct:.1f}"
+    return f"{steal} · {host.p99_ms:.1f} / {host.max_ms:.0f}"
+
+
 def parse_clients(spec: str) -> tuple[tuple[int, bool], ...]:
     """``"1,50,50p"``: numbers of clients; ``p``: the others than the probe take pose-only messages."""
     out = []
@@ -260,7 +265,7 @@ def run(
     measured_as = centre or DetectSettings().centre  # None: the service's default
     lines = [
         "| camera Hz | clients | results/s | lost | exposure → WS p50 / p99 / max ms "
-        "| exposure → commit p99 ms | CPU ms/frame | host: sleep late p99 / max ms |",
+        "| exposure → commit p99 ms | CPU ms/frame | host: steal % · sleep late p99 / max ms |",
         "|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
@@ -270,7 +275,7 @@ def run(
             f"| {r['results_per_s']:.0f} | {100 * r['lost_fraction']:.1f} % "
             f"| {r['ws_p50_ms']:.1f} / {r['ws_p99_ms']:.1f} / {r['ws_max_ms']:.1f} | {r['commit_p99_ms']:.1f} "
             f"| {r['cpu_ms_per_frame']:.2f} "
-            f"| {'-' if host is None else f'{host.p99_ms:.1f} / {host.max_ms:.0f}'} |"
+            f"| {'-' if host is None else _host_cell(host)} |"
         )
     lines += [
         "",
@@ -288,8 +293,9 @@ def run(
     lines.append("")
     lines += [f"- *{name}*: {what}" for name, what in STAGES]
     lines.append(
-        f"- *host*: how late a process that only sleeps {TICK_S * 1e3:g} ms at a time woke meanwhile "
-        "(`service/bench/stalls.py`): the host's own scheduling, whatever posecell does"
+        "- *host*: the share of the CPUs' time the hypervisor took meanwhile (steal), and how late a process "
+        f"that only sleeps {TICK_S * 1e3:g} ms at a time woke (`service/bench/stalls.py`): the host's own state, "
+        "whatever posecell does"
     )
     stalled = [(r, r["host"]) for r in rows if r["host"] is not None and r["host"].stalls]
     for r, host in stalled:
