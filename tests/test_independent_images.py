@@ -173,17 +173,22 @@ def test_each_frame_says_how_blurred_its_targets_are(measurer, blur_px):
         assert bool(out.brightness.focus_note) == (blur_px > 1.5), out.brightness.focus_note
 
 
-def test_roi_tracking_follows_the_independent_images(measurer):
-    """Frames 4 ms apart along a path: after the first, each is measured in windows about the
-    predicted targets, as the service does, and holds the full frame's accuracy."""
+def _tracked(measurer: FrameMeasurer, frames) -> tuple[Score, list[str]]:
+    """Frames 4 ms apart measured as the service tracks (the first in full): the ROI frames' score and every mode."""
     measurer.reset()
-    roi = Score()
-    modes = []
-    for k, frame in enumerate(path_frames(8, seed=3)):
+    roi, modes = Score(), []
+    for k, frame in enumerate(frames):
         probe = Score()
         modes.append(measure_posecell(measurer, frame, probe, t_s=k * 0.004))
         if modes[-1] == "roi":
             roi.merge(probe)
+    return roi, modes
+
+
+def test_roi_tracking_follows_the_independent_images(measurer):
+    """Frames 4 ms apart along a path: after the first, each is measured in windows about the
+    predicted targets, as the service does, and holds the full frame's accuracy."""
+    roi, modes = _tracked(measurer, path_frames(8, seed=3))
     assert modes[0] == "full" and modes[1:].count("roi") >= 6, modes
     # seen: every one (before the coded targets' rings were masked in their windows, 97.7 %: in these
     # oblique views the ring reaches a window that holds the disk)
@@ -196,15 +201,7 @@ def test_roi_tracking_follows_an_out_of_focus_path(measurer):
     """Blurred by 2.5 px, a disk's tail reaches 3 px beyond its edge at the segmentation level: ROI
     windows with the fixed 3 px rim refused it as too big and kept 78 % of the targets (41 of 269
     coded; seen 2026-12-06). Their rim now follows the last frame's blur (BLUR_RIM_SIGMAS)."""
-    measurer.reset()
-    roi = Score()
-    modes = []
-    light = replace(VIEWS[11].light, blur_px=2.5)
-    for k, frame in enumerate(path_frames(6, seed=3, light=light)):
-        probe = Score()
-        modes.append(measure_posecell(measurer, frame, probe, t_s=k * 0.004))
-        if modes[-1] == "roi":
-            roi.merge(probe)
+    roi, modes = _tracked(measurer, path_frames(6, seed=3, light=replace(VIEWS[11].light, blur_px=2.5)))
     assert modes[0] == "full" and modes[1:].count("roi") >= 4, modes
     # seen: 2038 of 2037 over 9 frames, 269 coded (one more than "visible", whose disk is cut by the border)
     assert roi.failed == 0 and roi.wrong == 0 and roi.found >= 0.98 * roi.visible, (roi.found, roi.visible)
