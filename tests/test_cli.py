@@ -184,7 +184,8 @@ def test_bench_independent_measures_the_sheet_imaged_by_cairo_and_opencv_beside_
         assert named >= 0.95 * in_view > 0 and cells[3] == "0" and cells[7] == "0", rows[view.name]  # none misnamed
         assert float(cells[5]) < 0.1 and float(cells[11]) < 1.0, rows[view.name]  # pose errors, ours and the peer's
     tracked = [line for line in rows.values() if "4 ms apart" in line]
-    assert len(tracked) == 2 and "corner" in tracked[1], r.stdout  # the sheet's path and the corner's
+    # the sheet's path, the corner's, and the sheet's out of focus
+    assert len(tracked) == 3 and "corner" in tracked[1] and "out of focus" in tracked[2], r.stdout
     for line in tracked:
         cells = [c.strip() for c in line.split("|")[2:-1]]
         # ROI frames, their time, the coded targets named, none misnamed

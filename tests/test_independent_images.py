@@ -158,6 +158,24 @@ def test_an_out_of_focus_frame_is_measured_above_the_blur_that_joins_disks_to_ri
     assert "the targets' edges are blurred" in out.message and "check the lens's focus" in out.message, out
 
 
+def test_a_grazing_view_names_every_target_the_blobs_left_unnamed(measurer):
+    """VIEWS[12]: at 30 deg a far coded target's disk joins its ring's near arc at the segmentation
+    level; the blob is no disk and 1-3 targets a frame went unnamed (seen: 447 of 452, 55 of 59
+    coded). The full frame now measures the targets in view that no blob named in windows about the
+    pose's prediction, their rings masked, as ROI tracking does: every one is named, at the others'
+    accuracy."""
+    measurer.reset()
+    ours = Score()
+    frames = frames_of(VIEWS[12], 2, seed=7)
+    for frame in frames:
+        measure_posecell(measurer, frame, ours)
+    coded_in_view = sum(int(np.sum(_visible(f) & np.array([t.startswith("C") for t in f.ids]))) for f in frames)
+    assert ours.failed == 0 and ours.wrong == 0, (ours.failed, ours.wrong)
+    assert ours.found >= ours.visible and ours.coded >= coded_in_view, (ours.found, ours.visible, ours.coded)
+    rms = float(np.sqrt(np.mean(np.square(ours.centre_err))))
+    assert rms < 0.03 and max(ours.pose_mm) < 0.04, (rms, ours.pose_mm)
+
+
 @pytest.mark.parametrize("blur_px", [0.6, 1.2, 2.0])
 def test_each_frame_says_how_blurred_its_targets_are(measurer, blur_px):
     """The blur the frame's disks show (their second moments beyond the disk's own) is the chain's

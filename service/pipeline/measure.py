@@ -50,6 +50,7 @@ from service.core.targets.identify import (
     project_field,
 )
 from service.pipeline.brightness import Brightness
+from service.pipeline.ranges import detect_settings_for_range
 
 Array = NDArray[np.float64]
 
@@ -204,33 +205,6 @@ TIGHT_SLACK = 0.25
 #: An ROI window's rim lies this many of the last frame's blur sigmas beyond the disk (3 px at least): a
 #: disk blurred by 2.5 px reached the 3 px rim at the segmentation level and was refused as too big
 BLUR_RIM_SIGMAS = 2.5
-#: A target's image at the far end of the range is at least this share of its head-on disk (seen at up
-#: to 75 deg, thresholded); at the near end at most this many times it (blur and the threshold's growth)
-MIN_AREA_SHARE, MAX_AREA_FACTOR = 0.25, 1.5
-
-
-def detect_settings_for_range(
-    detect: DetectSettings, field: Field, camera: BrownFraser, range_mm: tuple[float, float]
-) -> DetectSettings:
-    """``detect`` with its area limits narrowed to the targets ``field`` can show at ``range_mm``
-    (nearest, farthest; mm) through ``camera``: the smallest disk at the far end seen obliquely,
-    the largest at the near end plus 2 px of blur (unknown diameters: 10 mm coded, 6 mm uncoded).
-    Narrower limits reject stickers, labels and specks before they are measured, and keep the
-    search for ring pieces short."""
-    near, far = (float(v) for v in range_mm)
-    if not 0 < near <= far:
-        raise ValueError(f"range_mm must be (nearest, farthest) with 0 < nearest <= farthest, got {range_mm}")
-    d = np.where(np.isfinite(field.diameters_mm), field.diameters_mm, np.where(field.is_coded, 10.0, 6.0))
-    px = camera.c_mm / camera.mean_pixel_size_mm  # image radius px per mm of disk radius at 1 mm range
-    r_small, r_big = 0.5 * float(d.min()) * px / far, 0.5 * float(d.max()) * px / near
-    min_area = max(3, int(MIN_AREA_SHARE * np.pi * r_small**2))
-    max_area = int(np.ceil(MAX_AREA_FACTOR * np.pi * (r_big + 2.0) ** 2))
-    return replace(
-        detect,
-        min_area_px=max(detect.min_area_px, min_area),
-        max_area_px=max(min(detect.max_area_px, max_area), min_area + 1),
-    )
-
 
 # Unnamed blobs and unnamed targets in view, each at least this many after the coded pose's
 # matching: it is done again from the pose of all named so far, while a round names more
@@ -491,13 +465,11 @@ class FrameMeasurer:
         res = resect(self.camera, self.field.xyz[coded.rows], blobs.uv[coded.blobs], sigma_px=s.sigma_px)
         # the paper's second step: every other target, predicted from the coded pose
         T_field_camera = res.T_field_camera
-        rows, blob_of, unnamed = self._name_from(
-            blobs, coded.rows[res.inliers], coded.blobs[res.inliers], T_field_camera
-        )
+        rows, blob_of, left = self._name_from(blobs, coded.rows[res.inliers], coded.blobs[res.inliers], T_field_camera)
         # unnamed blobs where targets in view went unnamed: the coded targets' pose predicted them
         # too far off (an approximate camera, the coded targets read on one side); again from the
         # pose of all named so far, while that names more
-        for _ in range(MORE_ROUNDS if min(len(blobs) - len(blob_of), unnamed) >= MORE_ROUND_MIN else 0):
+        for _ in range(MORE_ROUNDS if min(len(blobs) - len(blob_of), len(left[0])) >= MORE_ROUND_MIN else 0):
             try:
                 T_field_camera = resect(
                     self.camera,
@@ -510,20 +482,56 @@ class FrameMeasurer:
             except SolveError:
                 break
             n_named = len(rows)
-            rows, blob_of, _ = self._name_from(blobs, rows, blob_of, T_field_camera)
+            rows, blob_of, left = self._name_from(blobs, rows, blob_of, T_field_camera)
             if len(rows) == n_named:
                 break
+        rows, uv = self._name_in_windows(image, rows, blobs.uv[blob_of], T_field_camera, *left)
         clock.lap("identify")
         if len(rows) < s.min_targets:
             raise SolveError(Reason.too_few_targets, f"only {len(rows)} targets identified")
-        return self._finish(rows, blobs.uv[blob_of], T_field_camera, clock)
+        return self._finish(rows, uv, T_field_camera, clock)
+
+    def _name_in_windows(
+        self,
+        image: NDArray[np.generic],
+        rows: NDArray[np.int64],
+        uv: Array,
+        T: Array,
+        left: NDArray[np.int64],
+        at: Array,
+    ) -> tuple[NDArray[np.int64], Array]:
+        """``rows`` and ``uv`` with the targets ``left`` in view that no blob named (predicted ``at`` (N, 2)
+        px by the pose ``T``), measured in windows as ROI tracking measures them (coded targets' rings
+        masked) where the window is whole in the image and the disk within ``match_tolerance_px`` of
+        its prediction. Seen at 30 deg a far coded target's disk joins its ring's near arc at the
+        segmentation level, and the blob is no disk: 1-3 a frame went unnamed."""
+        # most frames leave only disks the image border cuts (refused by the detector, and here: no
+        # window is whole): none is measured, ~10 us
+        height, width = np.shape(image)[:2]
+        whole = (np.min(at, axis=1) > 3) & (at[:, 0] < width - 4) & (at[:, 1] < height - 4)
+        if whole.any():
+            left, at = left[whole], at[whole]
+            depth = (self.field.xyz[left] - T[:3, 3]) @ T[:3, 2]  # along the camera's axis, mm
+            half = self._window_half_size(left, depth, TIGHT_SLACK)
+            whole = (np.min(at, axis=1) > half) & (at[:, 0] < width - 1 - half) & (at[:, 1] < height - 1 - half)
+        if not whole.any():
+            return rows, uv
+        measured = self._measure_targets(image, T, left[whole], at[whole], depth[whole], TIGHT_SLACK, least=0)
+        if measured is None:
+            return rows, uv
+        more, more_uv, _ = measured
+        predicted = np.empty((len(self.field), 2))
+        predicted[left] = at
+        near = np.hypot(*(more_uv - predicted[more]).T) <= self.settings.match_tolerance_px
+        return np.concatenate([rows, more[near]]), np.vstack([uv, more_uv[near]])
 
     def _name_from(
         self, blobs: Blobs, rows: NDArray[np.int64], blob_of: NDArray[np.int64], T_field_camera: Array
-    ) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], tuple[NDArray[np.int64], Array]]:
         """The paper's second step from the pose ``T_field_camera``: each target in view not among
         the field ``rows`` named so far, predicted and matched one to one to a blob not among
-        ``blob_of``. Returns the rows and blobs named in all, and the targets in view left unnamed."""
+        ``blob_of``. Returns the rows and blobs named in all, and the targets in view left unnamed
+        (rows, and where they were predicted (N, 2) px)."""
         named = np.zeros(len(self.field), dtype=bool)
         named[rows] = True
         taken = np.zeros(len(blobs), dtype=bool)
@@ -531,7 +539,9 @@ class FrameMeasurer:
         in_view, uv_pred = project_field(self.camera, self.field, T_field_camera, margin_px=-2.0)
         todo = ~named[in_view]
         m = match_predicted(uv_pred[todo], in_view[todo], blobs.uv, self.settings.match_tolerance_px, taken)
-        return np.concatenate([rows, m.rows]), np.concatenate([blob_of, m.blobs]), int(todo.sum()) - len(m.rows)
+        named[m.rows] = True
+        left = ~named[in_view]
+        return np.concatenate([rows, m.rows]), np.concatenate([blob_of, m.blobs]), (in_view[left], uv_pred[left])
 
     def _read_enough(self, image: NDArray[np.generic], blobs: Blobs, shape: tuple[int, ...]) -> Matches:
         """The coded targets named by their rings, read in :func:`reading_order` until
@@ -618,11 +628,13 @@ class FrameMeasurer:
         depth: Array,
         slack: float,
         check_centred: bool = False,
+        least: int | None = None,
     ) -> tuple[NDArray[np.int64], Array, Blobs] | None:
         """Field rows and measured pixels (N, 2) of the targets found in windows about their
         predictions, and the disks measured; None when too few are found or, with
         ``check_centred``, when a disk lies further from its window's centre than ``slack`` times
-        the prediction allowance. A coded target's ring is masked in its window (in an oblique view it
+        the prediction allowance; ``least``: found by default ``roi_min_fraction`` of them and
+        ``min_targets``. A coded target's ring is masked in its window (in an oblique view it
         comes within the window of its disk): its own region is its disk predicted by ``T_pred``."""
         s = self.settings
         half = self._window_half_size(rows, depth, slack)
@@ -646,7 +658,9 @@ class FrameMeasurer:
             return None
         # compiled: as array expressions the gathering and the check were 2 % of an ROI frame
         rows_ok, uv, worst_px2 = roi_kernel.gather_found_kernel(found, blobs.uv, rows, uv_pred)
-        if len(rows_ok) < max(s.min_targets, s.roi_min_fraction * len(rows)):
+        if least is None:
+            least = max(s.min_targets, int(np.ceil(s.roi_min_fraction * len(rows))))
+        if len(rows_ok) < least:
             return None
         if check_centred and worst_px2 > (slack * s.roi_prediction_error_px) ** 2:
             return None

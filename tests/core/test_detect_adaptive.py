@@ -214,7 +214,7 @@ def test_measure_windows_follows_the_given_noise():
 
 
 def test_a_working_range_narrows_the_areas_to_the_targets_the_field_can_show():
-    from service.pipeline.measure import detect_settings_for_range
+    from service.pipeline.ranges import detect_settings_for_range
 
     camera, field = reference_camera(), reference_field()
     detect = detect_settings_for_range(DetectSettings(), field, camera, (800.0, 1300.0))
