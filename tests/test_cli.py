@@ -193,6 +193,39 @@ def test_bench_independent_measures_the_sheet_imaged_by_cairo_and_opencv_beside_
         assert cells[6] == "0", line
 
 
+def test_bench_ab_measures_two_trees_in_turn_on_the_same_frames():
+    """This checkout against itself (the same kernels: no compiling): each row's medians and a per-round
+    ratio near 1; the section is not among "all" and asks for what it compares with."""
+    repo = Path(__file__).resolve().parents[1]
+    r = run("bench", "ab", "--against", str(repo))
+    assert r.returncode == 0, r.stderr
+    rows = {line.split("|")[1].strip(): line for line in r.stdout.splitlines() if line.startswith("| ")}
+    for name in ("ROI tracking", "full frame"):
+        cells = [c.strip() for c in rows[name].split("|")[2:-1]]
+        mine, theirs, ratio = float(cells[0]), float(cells[1]), float(cells[2])
+        q1, q3 = (float(x) for x in cells[3].split("–"))
+        assert 100 < mine < 50_000 and 100 < theirs < 50_000, rows[name]  # us a frame
+        assert 0.7 < ratio < 1.4 and q1 <= ratio <= q3, rows[name]  # the same code on the same frames
+    asked = run("bench", "ab")
+    assert asked.returncode == 2 and "--against" in asked.stderr, asked.stderr
+    wrong = run("bench", "ab", "--against", "no-such-revision-here")
+    assert wrong.returncode == 2 and "neither a directory nor a git revision" in wrong.stderr, wrong.stderr
+
+
+def test_bench_ab_takes_a_git_revisions_tree_once_into_the_cache(tmp_path, monkeypatch):
+    from service.bench import ab
+
+    if not (ab.REPO / ".git").exists():
+        pytest.skip(f"{ab.REPO} is not a git checkout: no revision to extract")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    side = ab.other_side("HEAD")
+    assert side.tree.parent == tmp_path / "posecell" / "bench-ab" and len(side.name) == 7
+    assert (side.tree / "service" / "__init__.py").exists() and (side.tree / "pyproject.toml").exists()
+    marker = side.tree / "kept"
+    marker.write_text("")
+    assert ab.other_side("HEAD").tree == side.tree and marker.exists()  # extracted once, then kept
+
+
 def test_bench_host_times_roi_frames_alone_and_beside_each_neighbour_and_leaves_none_running():
     import os
 

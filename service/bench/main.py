@@ -56,6 +56,12 @@ def _independent(args: argparse.Namespace) -> str:
     return bench_independent.run(n_frames=args.sheet_frames, seed=args.seed)
 
 
+def _ab(args: argparse.Namespace) -> str:
+    from service.bench import ab as bench_ab
+
+    return bench_ab.run(against=args.against, seed=args.seed)
+
+
 SECTIONS: dict[str, Callable[[argparse.Namespace], str]] = {
     "accuracy": _accuracy,
     "speed": _speed,
@@ -64,7 +70,9 @@ SECTIONS: dict[str, Callable[[argparse.Namespace], str]] = {
     "host": _host,
     "real": _real,
     "independent": _independent,
+    "ab": _ab,
 }
+ON_REQUEST = ("ab",)  # not among "all": it needs --against
 
 
 def host_line() -> str:
@@ -93,11 +101,22 @@ def host_line() -> str:
 
 
 def run_bench(args: argparse.Namespace) -> int:
-    names = args.sections or list(SECTIONS)
+    names = args.sections or [n for n in SECTIONS if n not in ON_REQUEST]
     unknown = [n for n in names if n not in SECTIONS]
     if unknown:
         print(f"posecell bench: unknown section(s) {', '.join(unknown)}; known: {', '.join(SECTIONS)}", file=sys.stderr)
         return 2
+    if "ab" in names:
+        if not getattr(args, "against", None):
+            print("posecell bench ab: say which revision or tree to compare with: --against REV|DIR", file=sys.stderr)
+            return 2
+        from service.bench.ab import other_side
+
+        try:  # before any section runs: a wrong revision is told at once
+            other_side(args.against)
+        except ValueError as e:
+            print(f"posecell bench ab: {e}", file=sys.stderr)
+            return 2
     sys.stdout.write(f"_{host_line()}_\n\n")
     for name in names:
         t0 = time.perf_counter()

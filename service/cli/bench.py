@@ -19,7 +19,8 @@ def add_parser(subparsers: Subparsers) -> None:
         "sections",
         nargs="*",
         default=[],
-        help="sections to run (default: all): accuracy, speed, faults, service, host, real, independent",
+        help="sections to run (default: all but ab): accuracy, speed, faults, service, host, real, independent; "
+        "ab (with --against): this checkout's frame times against another revision's, head to head",
     )
     b.add_argument(
         "--frames",
@@ -69,6 +70,12 @@ def add_parser(subparsers: Subparsers) -> None:
         default=None,
         help="the real section's camera.json of the panel's lens "
         "(default: posecell calibrates it from the images first)",
+    )
+    b.add_argument(
+        "--against",
+        default=None,
+        help="the ab section: a git revision (its tree kept in ~/.cache/posecell/bench-ab; its kernels "
+        "compile on the first run, ~2 min) or a directory holding a service package",
     )
     b.set_defaults(func=run)
 
