@@ -138,6 +138,8 @@ class CameraConfig(_Section):
     # smallest delay from exposure end to the frame's arrival (readout + transfer): the part of
     # the latency the clock mapping cannot see; the worker reports what remains
     transport_latency_s: float = Field(0.004, ge=0, le=1, description="readout + transfer delay, s, [0, 1]")
+    # the sensor's defect pixels (posecell calibrate defects), patched in each frame before it is measured
+    defects: Path | None = None
 
     def camera_settings(self) -> CameraSettings:
         strobe = None if self.strobe is None else StrobeSettings(**self.strobe.model_dump())

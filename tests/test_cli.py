@@ -360,6 +360,51 @@ def test_measure_says_how_blurred_each_image_is_and_when_to_check_the_focus(tmp_
     assert r.stderr.count("check the lens's focus") == 1 and "blurred.png" in r.stderr, r.stderr
 
 
+def test_calibrate_defects_maps_the_hot_pixels_of_dark_frames_and_measure_patches_them(tmp_path):
+    import cv2
+
+    rng = np.random.default_rng(4)
+    hot = np.unique(rng.integers(0, 1030 * 1300, 600))
+    dark = tmp_path / "dark"
+    dark.mkdir()
+    for k in range(6):  # the ring light off: a floor, its noise, the hot pixels
+        f = rng.normal(12.0, 1.5, 1030 * 1300)
+        f[hot] = 250.0
+        cv2.imwrite(str(dark / f"dark_{k}.png"), np.clip(np.rint(f), 0, 255).astype(np.uint8).reshape(1030, 1300))
+    r = run("calibrate", "defects", str(dark), "-o", str(tmp_path / "defects.json"))
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["ok"] and out["defects"] == hot.size and out["frames"] == 6, out
+    saved = json.loads((tmp_path / "defects.json").read_text())
+    assert saved["width"] == 1300 and len(saved["pixels"]) == hot.size
+    # a frame of the simulated cell with those pixels hot: measured with the map as without them
+    run("simulate", "-o", str(tmp_path), "--frames", "1")
+    frame = cv2.imread(str(tmp_path / "frame_0000.png"), cv2.IMREAD_GRAYSCALE)
+    frame.reshape(-1)[hot] = 250
+    cv2.imwrite(str(tmp_path / "hot.png"), frame)
+    args = ["measure", "--camera", str(tmp_path / "camera.json"), "--field", str(tmp_path / "field.json")]
+    clean, spoiled = (
+        json.loads(line)
+        for line in run(*args, *(str(tmp_path / n) for n in ("frame_0000.png", "hot.png"))).stdout.splitlines()
+    )
+    r = run(*args, "--defects", str(tmp_path / "defects.json"), str(tmp_path / "hot.png"))
+    patched = json.loads(r.stdout)
+    assert clean["ok"] and patched["ok"] and spoiled["ok"], (clean, patched, spoiled)
+    uv = {name: {t["id"]: t["uv"] for t in o["targets"]} for name, o in (("c", clean), ("p", patched), ("s", spoiled))}
+    assert uv["p"].keys() == uv["c"].keys(), set(uv["p"]) ^ set(uv["c"])  # the same targets as the clean frame
+    moved = {k: float(np.hypot(*np.subtract(uv["p"][k], uv["c"][k]))) for k in uv["c"]}
+    assert max(moved.values()) < 0.01, max(moved.items(), key=lambda kv: kv[1])  # seen: 0.0000-0.002 px
+    spoiled_moved = [float(np.hypot(*np.subtract(uv["s"][k], uv["c"][k]))) for k in uv["c"] if k in uv["s"]]
+    assert uv["s"].keys() != uv["c"].keys() or max(spoiled_moved) > 0.02, spoiled_moved
+    # too few frames, a map of another sensor: a sentence each, exit 2
+    few = run("calibrate", "defects", *(str(p) for p in sorted(dark.iterdir())[:4]), "-o", str(tmp_path / "x.json"))
+    assert few.returncode == 2 and "at least 5 are needed" in few.stderr, few.stderr
+    saved["width"] = 1000
+    (tmp_path / "small.json").write_text(json.dumps(saved))
+    r = run(*args, "--defects", str(tmp_path / "small.json"), str(tmp_path / "hot.png"))
+    assert r.returncode == 2 and "must lie in the 1000 x 1030 sensor" in r.stderr, r.stderr
+
+
 def test_demo_measures_the_simulated_cell_live():
     r = run("demo", "--frames", "8", "--laps", "1", "--rate-hz", "200")
     assert r.returncode == 0, r.stderr

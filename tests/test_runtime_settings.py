@@ -92,8 +92,10 @@ def test_a_camera_that_failed_to_start_refuses_and_changes_nothing(worker):
 def test_the_processor_rebuilds_its_measurer_when_the_processing_options_are_swapped(worker, monkeypatch, measure_in):
     built: list[MeasureSettings] = []
     # what the processor builds its measurer with, recorded (camera and field are placeholders here)
-    monkeypatch.setattr(processor_module, "FrameMeasurer", lambda camera, field, s: built.append(s) or s)
-    monkeypatch.setattr(processor_module.MeasureProcess, "configure", lambda self, camera, field, s: built.append(s))
+    monkeypatch.setattr(processor_module, "FrameMeasurer", lambda camera, field, s, defects: built.append(s) or s)
+    monkeypatch.setattr(
+        processor_module.MeasureProcess, "configure", lambda self, camera, field, s, defects: built.append(s)
+    )
     worker.update_processing(worker.settings.processing.model_copy(update={"measure_in": measure_in}))
     worker.calibration.camera, worker.calibration.field = object(), object()
     proc = worker.processors["cam0"]
@@ -201,7 +203,7 @@ print(before, [len(k.signatures) for k in (g.pose_at_kernel, g.flange_kernel)])
 
 
 def test_the_processor_reports_a_camera_calibrated_with_the_other_centres(worker, monkeypatch, caplog):
-    monkeypatch.setattr(processor_module, "FrameMeasurer", lambda camera, field, s: s)
+    monkeypatch.setattr(processor_module, "FrameMeasurer", lambda camera, field, s, defects: s)
     worker.update_processing(worker.settings.processing.model_copy(update={"measure_in": "thread"}))
     worker.calibration.camera, worker.calibration.field = object(), object()
     worker.calibration.camera_centre = "centroid"  # what the camera's calibration.centre said

@@ -20,6 +20,7 @@ def add_parser(subparsers: Subparsers) -> None:
     _add_handeye(cal)
     _add_robot(cal)
     _add_handeye_session(cal)
+    _add_defects(cal)
     calibrate_bundle.add_parsers(cal)  # camera, rig: listed after these in the help, as they always were
 
 
@@ -80,6 +81,66 @@ def _add_handeye_session(cal: Subparsers) -> None:
     hs.add_argument("--poses", type=int, default=12, help="proposed poses for 'start' (default: %(default)s)")
     hs.add_argument("--apply", action="store_true", help="with 'solve': store and use the result")
     hs.set_defaults(func=run_handeye_session)
+
+
+def _add_defects(cal: Subparsers) -> None:
+    df = cal.add_parser(
+        "defects",
+        help="the sensor's defect (hot) pixels, from frames in which only they stay put",
+        description="Finds the pixels that stand above their 3 x 3 neighbourhood in most of the frames: "
+        "take them with the ring light off or the lens capped, at the working exposure and gain (or from "
+        "several views: targets move, defects do not). The map written is patched into every frame before "
+        "it is measured (posecell measure --defects, [[cameras]] defects).",
+    )
+    df.add_argument("images", nargs="+", metavar="IMAGE", help="frames (or folders of frames), at least 5")
+    df.add_argument("-o", "--output", required=True, type=Path, help="defects.json to write")
+    df.add_argument(
+        "--min-fraction", type=float, default=None, help="of the frames a pixel must stand out in (default 0.8)"
+    )
+    df.add_argument(
+        "--k-sigma", type=float, default=None, help="how far above its neighbours, in noise sigmas (default 8)"
+    )
+    df.add_argument("--min-dn", type=float, default=None, help="and at least this many 8-bit DN (default 12)")
+    df.add_argument(
+        "--bit-depth", type=int, default=None, help="significant bits of 16-bit frames (e.g. 12), as for measure"
+    )
+    df.set_defaults(func=run_defects)
+
+
+def run_defects(args: argparse.Namespace) -> int:
+    """Find the defects; prints what was found (JSON) and writes the map."""
+    from service.core.targets import defects
+    from service.store import formats
+    from service.workflows.calibrate_camera import image_paths
+
+    paths = image_paths(args.images)
+    frames = [formats.read_image(p) for p in paths]
+    options = {"k_sigma": args.k_sigma, "min_dn": args.min_dn, "min_fraction": args.min_fraction}
+    full_dn = None if args.bit_depth is None else float(2**args.bit_depth - 1)
+    try:
+        found = defects.find_defects(frames, full_dn=full_dn, **{k: v for k, v in options.items() if v is not None})
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    m = found.defects
+    formats.write_defects(args.output, m, frames=found.n_frames, threshold_dn=float(found.threshold_dn.max()))
+    share = len(m) / (m.width * m.height)
+    print_json(
+        {
+            "ok": True,
+            "defects": len(m),
+            "share": share,
+            "frames": found.n_frames,
+            "threshold_dn": [float(found.threshold_dn.min()), float(found.threshold_dn.max())],
+            "stood_out_sometimes": found.sometimes,
+            "output": str(args.output),
+        }
+    )
+    if share > defects.SUSPECT_SHARE:
+        print_err(
+            f"posecell calibrate defects: warning: {share:.2%} of the pixels are defects: frames of one view "
+            "count its small targets as defects; take them with the ring light off, or from several views"
+        )
+    return 0
 
 
 def run_handeye(args: argparse.Namespace) -> int:

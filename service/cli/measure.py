@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from service.cli.common import EXIT_FAILED, Subparsers, print_err, print_json
+from service.cli.common import EXIT_FAILED, CliError, Subparsers, print_err, print_json
 
 
 def add_parser(subparsers: Subparsers) -> None:
@@ -84,6 +84,11 @@ def add_parser(subparsers: Subparsers) -> None:
         help="reject a target with more pixels at the saturation level than this (a camera whose pixels "
         "bloom); default: targets clipped by an overexposure are measured, and counted in the output",
     )
+    m.add_argument(
+        "--defects",
+        default=None,
+        help="defects.json of the camera's sensor (posecell calibrate defects): its pixels are patched first",
+    )
     m.add_argument("images", nargs="+", metavar="IMAGE", help="PNG, TIFF or PGM, 8 or 16 bit")
     m.set_defaults(func=run)
 
@@ -112,7 +117,11 @@ def run(args: argparse.Namespace) -> int:
     )
     if warning := formats.centre_mismatch(formats.calibrated_centre(camera_data), settings.detect.centre):
         print_err(f"posecell measure: warning: {warning}")
-    measurer = FrameMeasurer(camera, field, settings)
+    defects = None if args.defects is None else formats.read_defects(args.defects)
+    try:
+        measurer = FrameMeasurer(camera, field, settings, defects)
+    except ValueError as e:
+        raise CliError(f"{args.defects}: {e}") from None
     failed = 0
     for path in args.images:
         try:

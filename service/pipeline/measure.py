@@ -38,6 +38,7 @@ from service.core.results import Failure, PoseResult, Reason, SolveError, Target
 from service.core.targets.codes import FAMILIES, POSECELL12, CodeFamily
 from service.core.targets.decode import read_codes
 from service.core.targets.decode import warm_up as decode_warm_up
+from service.core.targets.defects import DefectMap
 from service.core.targets.detect import Blobs, DetectSettings, detect_blobs, measure_windows
 from service.core.targets.detect_types import DTYPE_MAX
 from service.core.targets.field import Field
@@ -50,6 +51,7 @@ from service.core.targets.identify import (
     project_field,
 )
 from service.pipeline.brightness import Brightness
+from service.pipeline.hints import size_mismatch, with_calibration_hint, with_image_hints
 from service.pipeline.ranges import detect_settings_for_range
 
 Array = NDArray[np.float64]
@@ -237,49 +239,6 @@ def _full_dn(image: NDArray[np.generic], detect: DetectSettings) -> float:
     return DTYPE_MAX.get(image.dtype.char, 1.0)  # the images measured are 8- or 16-bit
 
 
-def _nominal(camera: BrownFraser) -> bool:
-    """True for a camera with no calibration: no sigma (``posecell calibrate camera`` writes one)
-    and no correction terms at all (a camera.json written from the data sheet)."""
-    return camera.sigma is None and not np.any(camera.params()[1:])
-
-
-def _size_mismatch(shape: tuple[int, ...], camera: BrownFraser) -> str:
-    return (
-        f"the frame is {shape[1]} x {shape[0]} px but the camera model is for {camera.width} x {camera.height} px: "
-        "a camera's ROI needs the camera of that window (BrownFraser.cropped; the service makes it from the "
-        "camera's configured roi), another image size a calibration of its own"
-    )
-
-
-def _with_calibration_hint(e: SolveError, camera: BrownFraser) -> SolveError:
-    """``e`` with a sentence saying the camera is not calibrated, when that is the likely cause: the
-    targets disagree with every pose (sigma0, gross errors), as an uncorrected lens's distortion makes
-    them do (a 24 mm lens: 0.7 px against the 0.5 px limit)."""
-    if not _nominal(camera) or not ({"sigma0_px", "rejected"} & set(e.details)):
-        return e
-    return SolveError(
-        e.reason,
-        f"{e.message.rstrip('.')}. The camera is not calibrated (its camera.json has no "
-        "distortion terms and no sigma), and an uncorrected lens alone does this: run "
-        "`posecell calibrate camera` on images of the field and measure with the camera.json it "
-        "writes.",
-        e.details,
-    )
-
-
-def _with_image_hints(e: SolveError, brightness: Brightness) -> SolveError:
-    """``e`` with the saturated targets named when they are a fifth or more of those seen (rejected,
-    ``max_saturated_px``, or clipped so far that their rings no longer read), and with the blur
-    when it is beyond ``BLURRED_PX``."""
-    b = brightness
-    notes = [b.focus_note] if b.focus_note else []
-    if b.n_saturated >= max(2, 0.2 * (b.n_measured + b.n_saturated)):
-        notes.insert(0, b.saturation_note)
-    if not notes:
-        return e
-    return SolveError(e.reason, f"{e.message.rstrip('.')}; {'; '.join(notes)}.", e.details)
-
-
 # Blur (a lens out of focus, a near target beyond the depth of field) fills the gap between a coded
 # target's disk and its ring: at the noise's segmentation level the two are one blob, refused as
 # merged, and no ring is read. A frame left with too few coded targets, where as many blobs were
@@ -317,9 +276,24 @@ class _Clock:
 class FrameMeasurer:
     """Measures frames of one camera against one field, keeping the pose history for ROI tracking."""
 
-    def __init__(self, camera: BrownFraser, field: Field, settings: MeasureSettings | None = None) -> None:
+    def __init__(
+        self,
+        camera: BrownFraser,
+        field: Field,
+        settings: MeasureSettings | None = None,
+        defects: DefectMap | None = None,
+    ) -> None:
+        """``defects``: the sensor's defect pixels (of the camera's image size), patched in each frame
+        before it is measured (:meth:`DefectMap.patched_in_place`: a writeable frame's own pixels,
+        put back before :meth:`measure` returns)."""
+        if defects is not None and (defects.width, defects.height) != (camera.width, camera.height):
+            raise ValueError(
+                f"the defect map is of a {defects.width} x {defects.height} sensor, "
+                f"the camera's images are {camera.width} x {camera.height}"
+            )
         self.camera = camera
         self.field = field
+        self.defects = defects if defects is not None and len(defects) else None
         self.settings = settings or MeasureSettings()
         if self.settings.range_mm is not None:
             self.settings = replace(
@@ -362,11 +336,17 @@ class FrameMeasurer:
 
     def measure(self, image: NDArray[np.generic], t_s: float | None = None) -> Outcome:
         """Measure one frame taken at ``t_s`` (s; None: no tracking across frames)."""
-        s = self.settings
         shape = np.shape(image)
         if len(shape) == 2 and shape != (self.camera.height, self.camera.width):
             self._history.clear()  # pixels of another geometry: no pose of it is right, nor one to track
-            return Outcome(Failure(Reason.bad_image, _size_mismatch(shape, self.camera)), "full", {})
+            return Outcome(Failure(Reason.bad_image, size_mismatch(shape, self.camera)), "full", {})
+        if self.defects is not None and len(shape) == 2:
+            with self.defects.patched_in_place(np.asarray(image)) as patched:
+                return self._measure(patched, t_s)
+        return self._measure(image, t_s)
+
+    def _measure(self, image: NDArray[np.generic], t_s: float | None) -> Outcome:
+        s = self.settings
         if s.roi and t_s is not None:
             T_pred = predict_pose(list(self._history), t_s)
             if T_pred is not None:
@@ -443,7 +423,7 @@ class FrameMeasurer:
                     note = f"again with the segmentation level at {JOINED_LEVEL:.0%} of the targets' brightness"
                     message = f"{again.message.rstrip('.')} ({note}, as for a blurred image)"
                     e = SolveError(again.reason, message, again.details)
-            failure = Failure.from_error(_with_image_hints(_with_calibration_hint(e, self.camera), brightness))
+            failure = Failure.from_error(with_image_hints(with_calibration_hint(e, self.camera), brightness))
             return Outcome(failure, "full", clock.ms, len(blobs), counts, brightness)
         return Outcome(result, "full", clock.ms, len(blobs), counts, brightness)
 

@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 
 from service.core.geometry.camera_model import BrownFraser
 from service.core.results import PoseResult, TargetTable
+from service.core.targets.defects import DefectMap
 from service.core.targets.field import Field
 from service.pipeline.measure import FrameMeasurer, MeasureSettings, Outcome
 from service.runtime.cpus import pin_process
@@ -88,7 +89,7 @@ class MeasureProcess:
     def __init__(self, camera_name: str) -> None:
         self.camera_name = camera_name
         self._cpus: frozenset[int] | None = None  # the child's CPUs (None: as it inherits them)
-        self._setup: tuple[BrownFraser, Field, MeasureSettings] | None = None
+        self._setup: tuple[BrownFraser, Field, MeasureSettings, DefectMap | None] | None = None
         self._proc: Any = None
         self._conn: Connection | None = None
         self._buffer: mmap.mmap | None = None
@@ -122,12 +123,14 @@ class MeasureProcess:
         """True when a frame can be handed over now (fewer than :data:`DEPTH` in flight)."""
         return len(self._in_flight) < DEPTH
 
-    def configure(self, camera: BrownFraser, field: Field, settings: MeasureSettings) -> None:
+    def configure(
+        self, camera: BrownFraser, field: Field, settings: MeasureSettings, defects: DefectMap | None = None
+    ) -> None:
         """Measure with these from the next frame submitted on (the tracking starts again); starts the child.
 
         Frames already in flight are measured with the previous set-up.
         """
-        self._setup = (camera, field, settings)
+        self._setup = (camera, field, settings, defects)
         if self._conn is None:
             self._start()
         else:
@@ -313,9 +316,9 @@ def serve(conn: Connection) -> None:
             return
         try:
             if kind == "setup":
-                _, camera, field, settings = message
+                _, camera, field, settings, defects = message
                 measurer = None
-                measurer = FrameMeasurer(camera, field, settings)
+                measurer = FrameMeasurer(camera, field, settings, defects)
                 errors.pop(kind, None)
                 continue
             if kind == "buffer":

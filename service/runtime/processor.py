@@ -23,6 +23,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
@@ -30,9 +31,11 @@ import numpy as np
 
 from drivers.base import Frame, RobotDriver
 from service.core._kernels import geometry_kernels
+from service.core.geometry.camera_model import BrownFraser
 from service.core.measurement import Flange, Measurement
 from service.core.pose.timesync import TimeOffsetFit, estimate_time_offset_s
 from service.core.results import Failure, PoseResult, Reason
+from service.core.targets.defects import DefectMap
 from service.pipeline.flange import flange_part
 from service.pipeline.measure import FrameMeasurer, MeasureSettings, Outcome
 from service.runtime.acquisition import DeviceState
@@ -114,6 +117,9 @@ class CameraProcessor:
         self._offset: TimeOffsetFit | None = None
         self._n_since_offset = 0
         self._motion_lock = threading.Lock()  # appended by the processing thread, read by /health
+        self._defects_path: Path | None = cam_cfg.defects  # the camera's defect map, as configured
+        self._defects: DefectMap | None = None  # read from it (the whole sensor's)
+        self._setup_error: str | None = None  # why no measurer could be set up, for every frame
         # host monotonic -> wall clock, fixed at start (results carry both)
         self._wall_minus_mono_ns = time.time_ns() - time.monotonic_ns()
 
@@ -121,6 +127,8 @@ class CameraProcessor:
         """The camera's new configuration (its transport latency) is in force from the next frame."""
         self.pairer.camera_latency_ns = cfg.transport_latency_s * 1e9
         self.pairer.camera_clock.reset()  # a new exposure or frame rate changes the arrival pattern
+        if cfg.defects != self._defects_path:
+            self._generation = -1  # another defect map: the measurer is set up again before the next frame
 
     def warm_up(self) -> None:
         """Build the measurer now (loads or compiles the numba kernels; starts the child process).
@@ -156,6 +164,10 @@ class CameraProcessor:
         warning = None if centre is None else formats.centre_mismatch(calibrated, centre)
         return {
             **where,
+            # the sensor's defect pixels patched in each frame (None: no map configured)
+            "defects": None
+            if self._defects is None
+            else {"file": str(self._defects_path), "pixels": len(self._defects)},
             "bit_depth": self._bit_depth,
             "centre": centre,
             "camera_calibrated_with": calibrated,
@@ -209,7 +221,13 @@ class CameraProcessor:
                 # calibrated sensor does not hold keeps the whole camera, and each frame says so
                 with contextlib.suppress(ValueError):
                     camera = camera.cropped(*roi)
-            if camera is None or cal.field is None:
+            defects = None
+            try:
+                defects = self._defect_map(camera, roi)
+                self._setup_error = None
+            except ValueError as e:
+                self._setup_error = f"camera {self.name}'s defect map: {e}"
+            if camera is None or cal.field is None or self._setup_error is not None:
                 self._measurer = None
             elif processing.measure_in == "process":
                 if self._process is None:
@@ -217,14 +235,32 @@ class CameraProcessor:
                     self._process.keep_to(self._cpus)
                 self._measurer = self._process
                 try:
-                    self._process.configure(camera, cal.field, measure_settings(processing, bits))
+                    self._process.configure(camera, cal.field, measure_settings(processing, bits), defects)
                 except Exception:
                     self._generation = -1  # set up again with the next frame
                     raise
             else:
                 self.close()
-                self._measurer = FrameMeasurer(camera, cal.field, measure_settings(processing, bits))
+                self._measurer = FrameMeasurer(camera, cal.field, measure_settings(processing, bits), defects)
         return self._measurer
+
+    def _defect_map(self, camera: BrownFraser | None, roi: tuple[int, int, int, int] | None) -> DefectMap | None:
+        """The configured defect map, of the window ``roi`` of the sensor (read once a path); ValueError
+        when it cannot be read or is not of this camera's sensor."""
+        cfg = next(c for c in self.settings.cameras if c.name == self.name)
+        if cfg.defects is None:
+            self._defects_path, self._defects = None, None
+            return None
+        if cfg.defects != self._defects_path or self._defects is None:
+            self._defects_path, self._defects = cfg.defects, None
+            self._defects = formats.read_defects(cfg.defects)
+        defects = self._defects if roi is None else self._defects.cropped(*roi)
+        if camera is not None and (defects.width, defects.height) != (camera.width, camera.height):
+            raise ValueError(
+                f"{cfg.defects} is of a {defects.width} x {defects.height} image, the camera's frames are "
+                f"{camera.width} x {camera.height}"
+            )
+        return defects
 
     def process(self, frame: Frame, robot: RobotDriver | None, robot_state: DeviceState) -> Measurement:
         """Measure one frame now (:meth:`begin`, :meth:`collect` and :meth:`finish` in one)."""
@@ -237,7 +273,9 @@ class CameraProcessor:
         t_exposure_ns, source = self.pairer.exposure_instant_ns(frame)
         pending = Pending(frame, t_exposure_ns, source, time.perf_counter())
         measurer = self._current_measurer()
-        if measurer is None:
+        if measurer is None and self._setup_error is not None:
+            pending.failure = Failure(Reason.bad_input, self._setup_error)
+        elif measurer is None:
             missing = [k for k in ("camera", "field") if getattr(self.calibration, k) is None]
             pending.failure = Failure(Reason.not_calibrated, f"no {' and no '.join(missing)} calibration is loaded")
         elif frame.image.ndim != 2 or frame.image.size == 0:

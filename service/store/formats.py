@@ -27,6 +27,7 @@ import numpy as np
 
 from service.core.geometry.camera_model import PARAMETER_NAMES, BrownFraser
 from service.core.pose.intersection import Rig
+from service.core.targets.defects import DefectMap
 from service.core.targets.detect_types import CENTRES
 from service.core.targets.field import Field
 
@@ -575,6 +576,23 @@ def image_timestamps_from_csv(text: str, source: str = "timestamps.csv") -> dict
 
 def read_image_timestamps(path: str | os.PathLike[str]) -> dict[str, int]:
     return image_timestamps_from_csv(_read_text(path), str(path))
+
+
+# -- defects.json ------------------------------------------------------------
+
+
+def read_defects(path: str | os.PathLike[str]) -> DefectMap:
+    """A sensor's defect pixels (``posecell calibrate defects``)."""
+    try:
+        return DefectMap.from_dict(read_json(path), str(path))
+    except FormatError:
+        raise
+    except ValueError as e:
+        raise FormatError(str(e)) from None
+
+
+def write_defects(path: str | os.PathLike[str], defects: DefectMap, **extra: Any) -> None:
+    write_json_atomic(path, defects.to_dict(**extra))
 
 
 # -- images ------------------------------------------------------------------
