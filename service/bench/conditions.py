@@ -3,7 +3,7 @@
 Each row renders the same kind of path (see :func:`service.bench.speed.frames_along_path`) under
 one condition — read noise of 1, 2, 4 and 6 DN over a 12 DN background, the ring light's hot
 spot, a gradient, oblique views, blur, the smear of the arm's motion during the exposure, printed
-labels (text that is bright but no target) — and
+labels (text that is bright but no target), hot pixels with and without the sensor's defect map — and
 measures it three ways in the same run: posecell on the full frame, posecell with ROI tracking
 along the path, and the OpenCV peer (threshold + components + ``solvePnP``, given the identities).
 Per row: median and p99 ms per frame, the median pose error against the rendering's truth, and
@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from service.core.geometry.frames import inv_T, pose_difference
 from service.core.geometry.opencv_compat import opencv_from_brown
 from service.core.results import PoseResult
+from service.core.targets.defects import DefectMap, find_defects
 from service.pipeline.measure import FrameMeasurer
 from service.sim.render import RenderedFrame, RenderSettings
 from service.sim.scene import reference_camera, reference_field
@@ -38,8 +39,12 @@ class Condition:
     render: RenderSettings = DEFAULT
     view_deg: float = 80.0  # centre of the path's view angle (90: head-on), +-10 deg along it
     labels: bool = False
+    # posecell measures with the sensor's defect map, found as `posecell calibrate defects` finds it
+    # from DARK_FRAMES frames with the ring light off
+    defect_map: bool = False
 
 
+HOT = RenderSettings(exposure_scale=0.8, hot_pixels=5e-4)
 PASSES = 3  # over each row's frames, posecell and the peer in turn
 BLOCK = 10  # frames each tool measures before the other takes its turn
 
@@ -54,7 +59,11 @@ CONDITIONS = (
     # the arm moving during the exposure: at 1 m 6 px is 3.4 mm, e.g. 0.34 m/s for 10 ms
     Condition("motion blur 6 px", RenderSettings(exposure_scale=0.8, motion_blur_px=6.0, motion_angle_deg=30.0)),
     Condition("printed labels", labels=True),
+    # 0.05 % of the pixels hot (670, 200 DN of dark current): without a map, and with the one found
+    Condition("hot pixels 0.05 %", HOT),
+    Condition("hot pixels 0.05 %, defect map", HOT, defect_map=True),
 )
+DARK_FRAMES = 8
 
 
 def add_labels(image: NDArray[np.generic], rng: np.random.Generator, n: int = 40) -> NDArray[np.generic]:
@@ -107,6 +116,17 @@ def _peer_one(frame: RenderedFrame, image: NDArray[np.generic], fit: Any, field:
     return ms, pose_difference(inv_T(T_camera_field), frame.T_field_camera)[0]
 
 
+def _dark_frames_map(camera: Any, field: Any, render: RenderSettings, seed: int) -> DefectMap:
+    """The sensor's defect map as ``posecell calibrate defects`` finds it: from frames with the light off."""
+    from service.sim.render import render_frame
+    from service.sim.scene import reference_pose
+
+    rng = np.random.default_rng(seed)
+    dark = replace(render, lit=False)
+    frames = [render_frame(camera, field, reference_pose(), dark, rng).image for _ in range(DARK_FRAMES)]
+    return find_defects(frames).defects
+
+
 def run(n_frames: int = 30, seed: int = 1, passes: int = PASSES) -> str:
     from service.bench.speed import frames_along_path
 
@@ -123,7 +143,8 @@ def run(n_frames: int = 30, seed: int = 1, passes: int = PASSES) -> str:
         frames = frames_along_path(n_frames, seed + k, cond.render, cond.view_deg)
         label_rng = np.random.default_rng(seed + 1000 + k)
         images = [add_labels(f.image, label_rng) if cond.labels else f.image for f in frames]
-        full, tracker = FrameMeasurer(camera, field), FrameMeasurer(camera, field)
+        defects = _dark_frames_map(camera, field, cond.render, seed + k) if cond.defect_map else None
+        full, tracker = FrameMeasurer(camera, field, None, defects), FrameMeasurer(camera, field, None, defects)
         full.measure(images[0])  # warm-up: caches, first allocations
         full_ms, roi_ms, peer_ms, err, roi_err, peer_err, fails = [], [], [], [], [], [], 0
         # in blocks of a few frames, each tool on its own block and then the other (which goes first

@@ -91,6 +91,11 @@ class RenderSettings:
     motion_angle_deg: float = 0.0
     occluders: tuple[tuple[float, float, float], ...] = ()  # dark discs (u, v, radius_px)
     lit: bool = True  # ring light on? if False, targets are not bright (only background)
+    # hot pixels: this share of the sensor's pixels, the same ones in every frame of a seed (a property
+    # of the sensor), hot_pixel_dn above the background whether the light is on or off (dark current)
+    hot_pixels: float = 0.0
+    hot_pixel_dn: float = 200.0
+    hot_pixel_seed: int = 0
     # the light's change across each target's pattern (step 3 of the module's docstring); False:
     # one level a target, for the tests of the geometry alone (an intensity centroid of an evenly
     # lit pattern is its area centroid)
@@ -109,6 +114,7 @@ class RenderSettings:
             "read_noise_dn",
             "hot_spot_dn",
             "motion_blur_px",
+            "hot_pixel_dn",
         ):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
@@ -117,6 +123,8 @@ class RenderSettings:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be finite and positive, got {v}")
+        if not 0.0 <= self.hot_pixels <= 0.01:
+            raise ValueError(f"hot_pixels must be a share of the pixels in [0, 0.01], got {self.hot_pixels}")
         if not np.isfinite(self.motion_angle_deg):
             raise ValueError(f"motion_angle_deg must be finite, got {self.motion_angle_deg}")
         if not np.isfinite(self.gradient_dn):
@@ -318,6 +326,8 @@ def _compose(
         d = np.hypot(np.arange(c0, c1 + 1)[None, :] - u, np.arange(r0, r1 + 1)[:, None] - v)
         img[r0 : r1 + 1, c0 : c1 + 1] *= (1.0 - ndtr((r - d) / sigma_edge)).astype(f32)
     img += f32(s.background_dn)
+    if s.hot_pixels > 0:
+        img.reshape(-1)[hot_pixel_indices(height, width, s.hot_pixels, s.hot_pixel_seed)] += f32(s.hot_pixel_dn)
     if rng is not None:
         # variance (DN^2) = level / e + read^2 = (level + read^2 e) / e, e = electrons_per_dn; normal
         # variates by inverse transform of 16-bit uniforms: four times faster than rng.standard_normal
@@ -337,6 +347,14 @@ def _compose(
     out = np.empty(img.shape, dtype=np.uint8 if s.bit_depth == 8 else np.uint16)
     quantise_kernel(img, f32(full_scale / 255.0), full_scale, out)
     return out
+
+
+@lru_cache(maxsize=4)
+def hot_pixel_indices(height: int, width: int, share: float, seed: int) -> NDArray[np.intp]:
+    """The flat indices of a ``height`` x ``width`` sensor's hot pixels: ``share`` of them, drawn once
+    from ``seed`` (the same in every frame, as a sensor's are)."""
+    rng = np.random.default_rng(seed)
+    return np.sort(rng.choice(height * width, round(share * height * width), replace=False))
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from service.core.geometry.camera_model import BrownFraser
 from service.core.geometry.frames import apply_T, inv_T, make_T
 from service.core.targets.codes import N_BITS, RING_INNER, RING_OUTER, bits_of
 from service.core.targets.field import Field
-from service.sim.render import RenderSettings, plane_axes_field, render_frame
+from service.sim.render import RenderSettings, hot_pixel_indices, plane_axes_field, render_frame
 from service.sim.scene import reference_camera, reference_field, reference_pose
 
 PIXEL_MM = 0.0067
@@ -438,3 +438,18 @@ def test_reference_plate_shows_at_least_four_coded_targets_in_close_partial_view
         frame = render_frame(cam, field, T)
         coded_visible = sum(ok and t.startswith("C") for t, ok in zip(frame.ids, frame.fully_visible, strict=True))
         assert coded_visible >= 4, look_at
+
+
+def test_hot_pixels_are_the_sensors_the_same_in_every_frame_light_on_or_off():
+    camera, field = reference_camera(), reference_field()
+    settings = RenderSettings(hot_pixels=5e-4, read_noise_dn=0.0, electrons_per_dn=1e6)
+    rng = np.random.default_rng(0)
+    lit = render_frame(camera, field, reference_pose(), settings, rng).image
+    dark = render_frame(camera, field, reference_pose(80.0, 1100.0), replace(settings, lit=False), rng).image
+    expected = hot_pixel_indices(camera.height, camera.width, 5e-4, 0)
+    assert expected.size == round(5e-4 * camera.width * camera.height)
+    # in the dark frame the hot pixels are all that stands above the background
+    assert np.array_equal(np.flatnonzero(dark > settings.background_dn + 100), expected)
+    assert np.all(lit.reshape(-1)[expected] >= settings.background_dn + settings.hot_pixel_dn - 1)
+    with pytest.raises(ValueError, match="hot_pixels"):
+        RenderSettings(hot_pixels=0.5)
