@@ -35,6 +35,7 @@ from service.settings import (
     save_runtime_file,
     validation_problems,
 )
+from service.store import formats
 
 router = APIRouter(tags=["configuration"])
 
@@ -123,7 +124,13 @@ def _validated(settings: Settings, patch: Any) -> tuple[list[CameraConfig], Proc
             if "strobe" in changes:
                 base = old.strobe.model_dump() if old.strobe is not None else {}
                 changes["strobe"] = {**base, **(changes["strobe"] or {})}
-            cameras.append(CameraConfig.model_validate({**old.model_dump(), **changes}))
+            cfg = CameraConfig.model_validate({**old.model_dump(), **changes})
+            if "defects" in changes and cfg.defects is not None:
+                try:  # a map that cannot be read is refused now, not found out frame by frame
+                    formats.read_defects(cfg.defects)
+                except ValueError as e:
+                    raise ApiError(Reason.bad_input, f"camera {name}: {e}") from None
+            cameras.append(cfg)
         processing = None
         if patch.processing is not None:
             processing = ProcessingConfig.model_validate(

@@ -203,7 +203,7 @@
     $("ws-drops").textContent = isNum(ws.dropped_total) ? String(ws.dropped_total) : "–";
     $("ws-drops").title = `messages dropped for slow clients since start; ${ws.clients ?? "?"} client(s) connected`;
     renderCameraSelect(cams.map(([n]) => n));
-    renderCameras(cams, p.time_offset || {});
+    renderCameras(cams, p.time_offset || {}, p.measurement || {});
     renderRobot(h.robot || {});
     renderCalibration(h.calibration || {});
   }
@@ -221,7 +221,7 @@
 
   const cameraCards = new Map();
 
-  function renderCameras(cams, offsets) {
+  function renderCameras(cams, offsets, measurement) {
     const box = $("camera-cards");
     for (const [name, c] of cams) {
       let card = cameraCards.get(name);
@@ -250,6 +250,9 @@
       if (isNum(c.targets_saturated) && c.targets_saturated > 0) facts.push(`${c.targets_saturated} targets saturated`);
       // how sharp the targets are; beyond 1.5 px the focus sentence says what to check (on hover too)
       if (isNum(c.blur_px) && c.blur_px > 0) facts.push(`blur ${fix(c.blur_px, 2)} px${c.focus ? " (out of focus)" : ""}`);
+      // the sensor's hot pixels patched in each frame (POST /calibration/camera/defects, [[cameras]] defects)
+      const defects = (measurement[name] || {}).defects;
+      if (defects && isNum(defects.pixels)) facts.push(`${defects.pixels} defect pixels patched`);
       const off = offsets[name];
       if (off && isNum(off.offset_ms)) facts.push(`clock offset ${fix(off.offset_ms, 2)} ± ${fix(off.sigma_ms, 2)} ms`);
       card.querySelector(".device-facts").textContent = facts.join(" · ");

@@ -105,6 +105,8 @@ class SimCamera:
     jitter_s : mean of the extra exponential delay
     clock_offset_s, clock_drift_ppm : the device clock against the host clock
     render : "process" (a render process, the default) or "inline" (in the fetching thread)
+    hot_pixels : share of the sensor's pixels that are hot (200 DN of dark current, lit or not; the
+        same pixels in every frame, drawn from ``seed``); 0: none
     """
 
     def __init__(
@@ -121,7 +123,11 @@ class SimCamera:
         serial: str = "SIM-0001",
         T_master_camera: list[list[float]] | None = None,
         render: str = "process",
+        hot_pixels: float = 0.0,
     ) -> None:
+        if not 0.0 <= float(hot_pixels) <= 0.01:
+            raise ValueError(f"hot_pixels is a share of the sensor's pixels in [0, 0.01], got {hot_pixels}")
+        self._hot_pixels = float(hot_pixels)  # the sensor's own, drawn from the seed: the same in every frame
         self._cell = cell if cell is not None else SimCell(CellConfig(**(cell_config or {})))
         self.epoch_ns = time.monotonic_ns() if epoch_ns is None else int(epoch_ns)
         self.latency_ns = int(latency_s * 1e9)
@@ -462,4 +468,10 @@ class SimCamera:
     def _render_settings(self, exposure_us: float, gain_db: float | None) -> RenderSettings:
         gain = 10 ** ((gain_db or 0.0) / 20.0)
         depth = _BIT_DEPTH[self._settings.pixel_format or "Mono8"]
-        return replace(RenderSettings(), exposure_scale=exposure_us / REFERENCE_EXPOSURE_US * gain, bit_depth=depth)
+        return replace(
+            RenderSettings(),
+            exposure_scale=exposure_us / REFERENCE_EXPOSURE_US * gain,
+            bit_depth=depth,
+            hot_pixels=self._hot_pixels,
+            hot_pixel_seed=self._seed,
+        )

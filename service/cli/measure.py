@@ -119,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
         print_err(f"posecell measure: warning: {warning}")
     defects = None if args.defects is None else formats.read_defects(args.defects)
     try:
-        measurer = FrameMeasurer(camera, field, settings, defects)
+        measurer = FrameMeasurer(camera, field, settings, defects, frames_owned=True)  # each image read for it
     except ValueError as e:
         raise CliError(f"{args.defects}: {e}") from None
     failed = 0

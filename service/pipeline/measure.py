@@ -282,10 +282,12 @@ class FrameMeasurer:
         field: Field,
         settings: MeasureSettings | None = None,
         defects: DefectMap | None = None,
+        frames_owned: bool = False,
     ) -> None:
         """``defects``: the sensor's defect pixels (of the camera's image size), patched in each frame
-        before it is measured (:meth:`DefectMap.patched_in_place`: a writeable frame's own pixels,
-        put back before :meth:`measure` returns)."""
+        before it is measured: in a copy, or with ``frames_owned`` (no other thread reads a frame
+        while it is measured) in the frame's own pixels, put back before :meth:`measure` returns
+        (:meth:`DefectMap.patched_in_place`: ~20 us where a copy of a 1.3 MP frame costs ~0.1 ms)."""
         if defects is not None and (defects.width, defects.height) != (camera.width, camera.height):
             raise ValueError(
                 f"the defect map is of a {defects.width} x {defects.height} sensor, "
@@ -294,6 +296,8 @@ class FrameMeasurer:
         self.camera = camera
         self.field = field
         self.defects = defects if defects is not None and len(defects) else None
+        self._frames_owned = frames_owned
+        self._patched: NDArray[np.generic] | None = None  # the copy's buffer, reused frame after frame
         self.settings = settings or MeasureSettings()
         if self.settings.range_mm is not None:
             self.settings = replace(
@@ -341,6 +345,9 @@ class FrameMeasurer:
             self._history.clear()  # pixels of another geometry: no pose of it is right, nor one to track
             return Outcome(Failure(Reason.bad_image, size_mismatch(shape, self.camera)), "full", {})
         if self.defects is not None and len(shape) == 2:
+            if not self._frames_owned:
+                self._patched = self.defects.patch(np.asarray(image), self._patched)
+                return self._measure(self._patched, t_s)
             with self.defects.patched_in_place(np.asarray(image)) as patched:
                 return self._measure(patched, t_s)
         return self._measure(image, t_s)

@@ -318,7 +318,7 @@ def serve(conn: Connection) -> None:
             if kind == "setup":
                 _, camera, field, settings, defects = message
                 measurer = None
-                measurer = FrameMeasurer(camera, field, settings, defects)
+                measurer = FrameMeasurer(camera, field, settings, defects, frames_owned=True)  # its shared slot
                 errors.pop(kind, None)
                 continue
             if kind == "buffer":

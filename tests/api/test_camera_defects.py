@@ -45,3 +45,63 @@ def test_a_defect_map_of_another_sensor_fails_each_frame_saying_why(tmp_path):
         assert "camera cam0's defect map" in msg["message"] and "1000 x 800 image" in msg["message"], msg
         with server.client() as c:
             assert c.get("/health").json()["processing"]["ok"] == 0
+
+
+def test_a_defect_map_is_set_at_run_time_and_one_that_cannot_be_read_is_refused(tmp_path):
+    _map(tmp_path / "defects.json")
+    for server in run_server(live_settings(tmp_path / "state", cameras=[{"frame_rate_hz": 15.0}])):
+        with server.client() as c:
+            before = c.get("/config").json()
+            assert before["cameras"][0]["defects"] is None
+            r = c.put("/config", json={"cameras": {"cam0": {"defects": str(tmp_path / "missing.json")}}})
+            assert r.status_code == 422 and "missing.json" in r.json()["message"], r.text
+            assert c.get("/config").json() == before  # refused: nothing changed
+            r = c.put("/config", json={"cameras": {"cam0": {"defects": str(tmp_path / "defects.json")}}})
+            assert r.status_code == 200 and r.json()["cameras"][0]["defects"] == str(tmp_path / "defects.json")
+        health = server.wait_for(
+            lambda h: (h["processing"]["measurement"]["cam0"]["defects"] or {}).get("pixels") == 300,
+            60.0,
+            "the map in use",
+        )
+        ok = health["processing"]["ok"]
+        server.wait_for(lambda h: h["processing"]["ok"] >= ok + 3, 60.0, "poses with the map")
+        with server.client() as c:
+            assert c.put("/config", json={"cameras": {"cam0": {"defects": None}}}).status_code == 200
+        server.wait_for(lambda h: h["processing"]["measurement"]["cam0"]["defects"] is None, 60.0, "no map")
+
+
+def test_the_service_maps_its_cameras_hot_pixels_from_dark_frames_and_puts_the_light_back(tmp_path):
+    """A simulated camera whose sensor has 0.05 % of its pixels hot: the strobe off for the frames, every
+    hot pixel found and none else, the map in use and saved, the strobe on again and poses as before."""
+    from service.sim.render import hot_pixel_indices
+
+    cameras = [{"frame_rate_hz": 15.0, "options": {"hot_pixels": 5e-4, "seed": 3}}]
+    for server in run_server(live_settings(tmp_path / "state", cameras=cameras)):
+        server.wait_for(lambda h: h["processing"]["ok"] >= 3, 120.0, "poses before")
+        with server.client() as c:
+            r = c.post("/calibration/camera/defects", json={"frames": 6})
+            assert r.status_code == 200, r.text
+            out = r.json()
+            config = c.get("/config").json()["cameras"][0]
+        expected = hot_pixel_indices(1030, 1300, 5e-4, 3)
+        assert out["defects"] == expected.size and out["applied"] and out["strobe_restored"], out
+        saved = formats.read_defects(out["file"])
+        assert np.array_equal(np.sort(saved.flat), expected)  # every hot pixel, and nothing else
+        assert config["defects"] == out["file"] and config["strobe"]["enabled"], config
+        saved_config = json.loads((server.settings.resolved_state_dir() / "runtime-config.json").read_text())
+        assert saved_config["cameras"][0]["defects"] == out["file"]
+        health = server.wait_for(lambda h: h["processing"]["measurement"]["cam0"]["defects"] is not None, 30.0, "map")
+        ok = health["processing"]["ok"]
+        server.wait_for(lambda h: h["processing"]["ok"] >= ok + 3, 60.0, "poses again, the light back on")
+        with server.client() as c:
+            r = c.post("/calibration/camera/defects", json={"camera": "cam9"})
+            assert r.status_code == 404 and "cam9" in r.json()["message"], r.text
+
+
+def test_a_camera_without_a_strobe_is_asked_for_a_capped_lens(tmp_path):
+    cameras = [{"frame_rate_hz": 15.0, "strobe": None}]
+    for server in run_server(live_settings(tmp_path / "state", cameras=cameras)):
+        server.wait_for(lambda h: h["cameras"]["cam0"]["state"] == "ok", 60.0, "the camera")
+        with server.client() as c:
+            r = c.post("/calibration/camera/defects", json={"frames": 5})
+        assert r.status_code == 409 and "light 'as_is'" in r.json()["message"], r.text

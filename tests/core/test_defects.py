@@ -129,12 +129,14 @@ def test_hot_pixels_move_centres_and_lose_roi_targets_until_the_map_patches_them
     hot = _hot(670)  # 0.05 % of the pixels
     defects = DefectMap(W, H, np.stack([hot % W, hot // W], axis=1))
 
-    def measurer(with_map: bool) -> FrameMeasurer:
-        return FrameMeasurer(reference_camera(), reference_field(), MeasureSettings(), defects if with_map else None)
+    def measurer(with_map: bool, owned: bool = False) -> FrameMeasurer:
+        m = defects if with_map else None
+        return FrameMeasurer(reference_camera(), reference_field(), MeasureSettings(), m, frames_owned=owned)
 
     clean = _score(measurer(False), frames, None)
     spoiled = _score(measurer(False), frames, hot)
-    patched = _score(measurer(True), frames, hot)
+    patched = _score(measurer(True), frames, hot)  # in a copy
+    assert _score(measurer(True, owned=True), frames, hot) == patched  # in the frame's own pixels, put back
     # seen: 223 named, 2 centres off by > 0.05 px, 0.0187 px clean; hot: 202.5 named, 40 off; patched: as clean
     assert spoiled[0] <= clean[0] - 10 and spoiled[1] >= clean[1] + 20, (clean, spoiled)
     assert patched[0] == clean[0] and patched[1] <= clean[1] + 2, (clean, patched)

@@ -399,6 +399,29 @@ def test_an_overexposed_camera_card_counts_its_saturated_targets(page: Page, cel
     )
 
 
+def test_a_camera_card_counts_the_defect_pixels_its_frames_are_patched_for(
+    page: Page, cell: LiveServer, tmp_path
+) -> None:
+    from service.core.targets.defects import DefectMap
+    from service.store import formats
+
+    cam = '[data-camera="cam0"]'
+    page.wait(f"document.querySelector('{cam}')?.dataset.state === 'ok'", "camera cam0 ok")
+    formats.write_defects(tmp_path / "defects.json", DefectMap(1300, 1030, [[10, 20], [500, 400], [900, 77]]))
+    worker = cell.worker
+    before = worker.settings.cameras[0]
+    assert worker.reconfigure_camera(before.model_copy(update={"defects": tmp_path / "defects.json"})) == ""
+    try:
+        page.wait(
+            f"/3 defect pixels patched/.test(document.querySelector('{cam} .device-facts').textContent)",
+            "the defect map on the card",
+            15,
+        )
+    finally:
+        assert worker.reconfigure_camera(before) == ""
+    page.wait(f"!/defect pixels/.test(document.querySelector('{cam} .device-facts').textContent)", "no map", 20)
+
+
 def test_page_loads_nothing_from_outside_and_raises_no_script_error(page: Page, cell: LiveServer) -> None:
     urls = page.js("performance.getEntriesByType('resource').map(e => e.name)")
     assert urls, "the page fetched nothing"
