@@ -87,9 +87,12 @@ def take_defects(request: Request, worker: WorkerDep, req: DefectsRequest | None
                 raise ApiError(Reason.unsupported, f"camera {cfg.name}: the map is in {path}, not in use: {error}")
             try:
                 save_runtime_file(worker.settings)
-            except OSError as e:
+            except OSError as e:  # as PUT /config: what cannot be saved is not made
+                worker.reconfigure_camera(now)
                 raise ApiError(
-                    Reason.storage_unavailable, f"the map is in use, but the configuration could not be saved ({e})"
+                    Reason.storage_unavailable,
+                    f"the map is in {path}, but the configuration could not be saved ({e.strerror or e}), "
+                    "so it is not in use",
                 ) from None
             applied = True
         worker.event(

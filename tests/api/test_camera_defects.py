@@ -105,3 +105,20 @@ def test_a_camera_without_a_strobe_is_asked_for_a_capped_lens(tmp_path):
         with server.client() as c:
             r = c.post("/calibration/camera/defects", json={"frames": 5})
         assert r.status_code == 409 and "light 'as_is'" in r.json()["message"], r.text
+
+
+def test_a_map_whose_configuration_cannot_be_saved_is_not_put_in_use(tmp_path, monkeypatch):
+    import api.routes.defects as route
+
+    def full_disk(settings) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(route, "save_runtime_file", full_disk)
+    for server in run_server(live_settings(tmp_path / "state", cameras=[{"frame_rate_hz": 15.0}])):
+        server.wait_for(lambda h: h["cameras"]["cam0"]["state"] == "ok", 60.0, "the camera")
+        with server.client() as c:
+            r = c.post("/calibration/camera/defects", json={"frames": 5})
+            assert r.status_code == 503 and "No space left on device" in r.json()["message"], r.text
+            assert "not in use" in r.json()["message"]
+            config = c.get("/config").json()["cameras"][0]
+        assert config["defects"] is None and config["strobe"]["enabled"], config
