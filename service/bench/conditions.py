@@ -144,7 +144,9 @@ def run(n_frames: int = 30, seed: int = 1, passes: int = PASSES) -> str:
         label_rng = np.random.default_rng(seed + 1000 + k)
         images = [add_labels(f.image, label_rng) if cond.labels else f.image for f in frames]
         defects = _dark_frames_map(camera, field, cond.render, seed + k) if cond.defect_map else None
-        full, tracker = FrameMeasurer(camera, field, None, defects), FrameMeasurer(camera, field, None, defects)
+        # the frames are the bench's own, as the service's measurement child owns its: patched in place
+        full = FrameMeasurer(camera, field, None, defects, frames_owned=True)
+        tracker = FrameMeasurer(camera, field, None, defects, frames_owned=True)
         full.measure(images[0])  # warm-up: caches, first allocations
         full_ms, roi_ms, peer_ms, err, roi_err, peer_err, fails = [], [], [], [], [], [], 0
         # in blocks of a few frames, each tool on its own block and then the other (which goes first
