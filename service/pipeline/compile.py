@@ -37,6 +37,7 @@ GROUPS = (
         "service.sim._raster_kernel",
         "service.core._kernels.json_kernel",
         "service.core._kernels.edge_kernel",
+        "service.core._kernels.defects_kernel",
     ),
     ("service.core._kernels.geometry_kernels", "service.core._kernels.resection_kernel", "service.core.targets.decode"),
 )

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.core._kernels import (
+    defects_kernel,
     detect_kernel,
     geometry_kernels,
     json_kernel,
@@ -312,6 +313,7 @@ class FrameMeasurer:
         # the compiled kernels, once per process (numba's disk cache makes it a load), so that no
         # frame pays for their compilation
         detect_kernel.warm_up()
+        defects_kernel.warm_up()
         geometry_kernels.warm_up()
         resection_kernel.warm_up()
         roi_kernel.warm_up()
