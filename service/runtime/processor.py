@@ -117,8 +117,8 @@ class CameraProcessor:
         self._offset: TimeOffsetFit | None = None
         self._n_since_offset = 0
         self._motion_lock = threading.Lock()  # appended by the processing thread, read by /health
-        self._defects_path: Path | None = cam_cfg.defects  # the camera's defect map, as configured
-        self._defects: DefectMap | None = None  # read from it (the whole sensor's)
+        self._defects_path: Path | None = None  # the defect map the measurer was set up with
+        self._defects: DefectMap | None = None  # read from it (the whole sensor's; None: none, or unreadable)
         self._setup_error: str | None = None  # why no measurer could be set up, for every frame
         # host monotonic -> wall clock, fixed at start (results carry both)
         self._wall_minus_mono_ns = time.time_ns() - time.monotonic_ns()
@@ -127,8 +127,6 @@ class CameraProcessor:
         """The camera's new configuration (its transport latency) is in force from the next frame."""
         self.pairer.camera_latency_ns = cfg.transport_latency_s * 1e9
         self.pairer.camera_clock.reset()  # a new exposure or frame rate changes the arrival pattern
-        if cfg.defects != self._defects_path:
-            self._generation = -1  # another defect map: the measurer is set up again before the next frame
 
     def warm_up(self) -> None:
         """Build the measurer now (loads or compiles the numba kernels; starts the child process).
@@ -200,6 +198,7 @@ class CameraProcessor:
             and processing is self._processing
             and BIT_DEPTH.get(self.pixel_format() or "") == self._bit_depth
             and self.roi() == self._roi
+            and self._configured_defects() == self._defects_path
             and self._process.can_submit()
         )
 
@@ -211,6 +210,7 @@ class CameraProcessor:
             or processing is not self._processing
             or bits != self._bit_depth
             or roi != self._roi
+            or self._configured_defects() != self._defects_path
         ):
             self._generation, self._processing, self._bit_depth, self._roi = cal.generation, processing, bits, roi
             if (warning := formats.centre_mismatch(cal.camera_centre, processing.centre)) is not None:
@@ -244,20 +244,24 @@ class CameraProcessor:
                 self._measurer = FrameMeasurer(camera, cal.field, measure_settings(processing, bits), defects)
         return self._measurer
 
+    def _configured_defects(self) -> Path | None:
+        """The camera's defect map file in the current settings (``PUT /config`` may change it)."""
+        return next(c for c in self.settings.cameras if c.name == self.name).defects
+
     def _defect_map(self, camera: BrownFraser | None, roi: tuple[int, int, int, int] | None) -> DefectMap | None:
-        """The configured defect map, of the window ``roi`` of the sensor (read once a path); ValueError
-        when it cannot be read or is not of this camera's sensor."""
-        cfg = next(c for c in self.settings.cameras if c.name == self.name)
-        if cfg.defects is None:
-            self._defects_path, self._defects = None, None
+        """The configured defect map, read now, of the window ``roi`` of the sensor; ValueError when it
+        cannot be read or is not of this camera's sensor (the measurer is set up again only when the
+        configured file changes, or the calibration, the processing options, the format or the roi)."""
+        path = self._configured_defects()
+        self._defects_path, self._defects = path, None
+        if path is None:
             return None
-        if cfg.defects != self._defects_path or self._defects is None:
-            self._defects_path, self._defects = cfg.defects, None
-            self._defects = formats.read_defects(cfg.defects)
+        self._defects = formats.read_defects(path)
         defects = self._defects if roi is None else self._defects.cropped(*roi)
         if camera is not None and (defects.width, defects.height) != (camera.width, camera.height):
+            self._defects = None
             raise ValueError(
-                f"{cfg.defects} is of a {defects.width} x {defects.height} image, the camera's frames are "
+                f"{path} is of a {defects.width} x {defects.height} image, the camera's frames are "
                 f"{camera.width} x {camera.height}"
             )
         return defects
