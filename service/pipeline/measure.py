@@ -484,35 +484,40 @@ class FrameMeasurer:
         self,
         image: NDArray[np.generic],
         rows: NDArray[np.int64],
-        uv: Array,
-        T: Array,
+        uv_px: Array,
+        T_field_camera: Array,
         left: NDArray[np.int64],
-        at: Array,
+        uv_pred_px: Array,
     ) -> tuple[NDArray[np.int64], Array]:
-        """``rows`` and ``uv`` with the targets ``left`` in view that no blob named (predicted ``at`` (N, 2)
-        px by the pose ``T``), measured in windows as ROI tracking measures them (coded targets' rings
-        masked) where the window is whole in the image and the disk within ``match_tolerance_px`` of
-        its prediction. Seen at 30 deg a far coded target's disk joins its ring's near arc at the
-        segmentation level, and the blob is no disk: 1-3 a frame went unnamed."""
+        """``rows`` and ``uv_px`` with the targets ``left`` in view that no blob named (predicted at
+        ``uv_pred_px`` (N, 2) by the pose ``T_field_camera``), measured in windows as ROI tracking
+        measures them (coded targets' rings masked) where the window is whole in the image and the disk
+        within ``match_tolerance_px`` of its prediction. Seen at 30 deg a far coded target's disk joins
+        its ring's near arc at the segmentation level, and the blob is no disk: 1-3 a frame went unnamed."""
         # most frames leave only disks the image border cuts (refused by the detector, and here: no
-        # window is whole): none is measured, ~10 us
+        # window is whole): none is measured
         height, width = np.shape(image)[:2]
-        whole = (np.min(at, axis=1) > 3) & (at[:, 0] < width - 4) & (at[:, 1] < height - 4)
+        u, v = uv_pred_px[:, 0], uv_pred_px[:, 1]
+        whole = (np.minimum(u, v) > 3) & (u < width - 4) & (v < height - 4)
         if whole.any():
-            left, at = left[whole], at[whole]
-            depth = (self.field.xyz[left] - T[:3, 3]) @ T[:3, 2]  # along the camera's axis, mm
-            half = self._window_half_size(left, depth, TIGHT_SLACK)
-            whole = (np.min(at, axis=1) > half) & (at[:, 0] < width - 1 - half) & (at[:, 1] < height - 1 - half)
+            left, uv_pred_px = left[whole], uv_pred_px[whole]
+            u, v = uv_pred_px[:, 0], uv_pred_px[:, 1]
+            axis, centre_mm = T_field_camera[:3, 2], T_field_camera[:3, 3]
+            depth_mm = (self.field.xyz[left] - centre_mm) @ axis  # along the camera's axis
+            half_px = self._window_half_size(left, depth_mm, TIGHT_SLACK)
+            whole = (np.minimum(u, v) > half_px) & (u < width - 1 - half_px) & (v < height - 1 - half_px)
         if not whole.any():
-            return rows, uv
-        measured = self._measure_targets(image, T, left[whole], at[whole], depth[whole], TIGHT_SLACK, least=0)
+            return rows, uv_px
+        measured = self._measure_targets(
+            image, T_field_camera, left[whole], uv_pred_px[whole], depth_mm[whole], TIGHT_SLACK, least=0
+        )
         if measured is None:
-            return rows, uv
-        more, more_uv, _ = measured
-        predicted = np.empty((len(self.field), 2))
-        predicted[left] = at
-        near = np.hypot(*(more_uv - predicted[more]).T) <= self.settings.match_tolerance_px
-        return np.concatenate([rows, more[near]]), np.vstack([uv, more_uv[near]])
+            return rows, uv_px
+        more, more_uv_px, _ = measured
+        predicted_px = np.empty((len(self.field), 2))
+        predicted_px[left] = uv_pred_px
+        near = np.hypot(*(more_uv_px - predicted_px[more]).T) <= self.settings.match_tolerance_px
+        return np.concatenate([rows, more[near]]), np.vstack([uv_px, more_uv_px[near]])
 
     def _name_from(
         self, blobs: Blobs, rows: NDArray[np.int64], blob_of: NDArray[np.int64], T_field_camera: Array
