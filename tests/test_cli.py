@@ -168,7 +168,15 @@ def test_bench_speed_reports_every_condition_of_the_matrix_beside_the_peer():
         if line.split("|")[1].strip() in {c.name for c in CONDITIONS}:
             cells = [c.strip() for c in line.split("|")[2:-1]]
             # full frame median and p99, the peer's median, the ratio to the peer's full frame
-            assert len(cells) == 12 and all(c != "nan" for c in (cells[0], cells[1], cells[7], cells[10])), line
+            assert len(cells) == 16 and all(c != "nan" for c in (cells[0], cells[1], cells[7], cells[10])), line
+            # the targets named (full frame, ROI) and found by the peer, %; none misnamed
+            named_full, named_roi, misnamed, peer_found = cells[12:]
+            assert 90.0 <= float(named_full) <= 100.0 and misnamed == "0", line
+            assert 0.0 < float(peer_found) <= 100.0, line
+            # ROI windows refuse a disk with a hot pixel beside it: the row without the map shows the
+            # loss that the map's row does not
+            if line.split("|")[1].strip() != "hot pixels 0.05 %":
+                assert named_roi == "—" or 90.0 <= float(named_roi) <= 100.0, line
 
 
 def test_bench_independent_measures_the_sheet_imaged_by_cairo_and_opencv_beside_the_peer():
