@@ -226,11 +226,17 @@
     for (const [name, c] of cams) {
       let card = cameraCards.get(name);
       if (!card) {
+        // the sensor's hot pixels mapped from dark frames by the service (POST /calibration/camera/defects)
+        const mapButton = el("button", { type: "button", class: "ghost defects-map", text: "Map hot pixels",
+          title: "8 frames with the ring light off (they give no pose), then the hot pixels found in them are " +
+                 "saved and patched in every frame; uses the API token of “Triggered measurement”" });
         card = el("div", { class: "device camera", "data-camera": name },
           el("div", { class: "device-head" },
             el("span", { class: "device-name", text: `Camera ${name}` }), el("span", { class: "pill state" })),
           el("div", { class: "device-facts" }),
-          el("p", { class: "device-error" }));
+          el("p", { class: "device-error" }),
+          el("div", { class: "device-actions" }, mapButton, el("span", { class: "device-note", role: "status" })));
+        mapButton.addEventListener("click", () => mapDefects(name, card));
         cameraCards.set(name, card);
         box.append(card);
       }
@@ -263,6 +269,29 @@
     }
     for (const [name, card] of cameraCards) {
       if (!cams.some(([n]) => n === name)) { card.remove(); cameraCards.delete(name); }
+    }
+  }
+
+  async function mapDefects(name, card) {
+    const button = card.querySelector(".defects-map"), note = card.querySelector(".device-note");
+    button.disabled = true;
+    note.dataset.state = "busy";
+    note.textContent = "taking dark frames…";
+    try {
+      const r = await window.posecell.call("/calibration/camera/defects", {
+        method: "POST", headers: window.posecell.headers(), body: JSON.stringify({ camera: name }) });
+      const said = [`${r.defects} defect pixels mapped from ${r.frames} dark frames` +
+                    (r.applied ? ", patched from now on" : ", not in use")];
+      if (r.warning) said.push(r.warning);
+      if (!r.strobe_restored) said.push("the ring light's strobe could not be switched on again: see the events");
+      note.dataset.state = r.warning || !r.strobe_restored ? "warn" : "ok";
+      note.textContent = said.join(" — ");
+    } catch (e) {
+      note.dataset.state = "failed";
+      note.textContent = `${e.reason}: ${e.message}` +
+        (e.status === 401 ? " (enter the API token under “Triggered measurement”)" : "");
+    } finally {
+      button.disabled = false;
     }
   }
 

@@ -422,6 +422,39 @@ def test_a_camera_card_counts_the_defect_pixels_its_frames_are_patched_for(
     page.wait(f"!/defect pixels/.test(document.querySelector('{cam} .device-facts').textContent)", "no map", 20)
 
 
+def test_a_camera_cards_button_maps_the_hot_pixels_from_dark_frames_and_puts_the_map_in_use(
+    page: Page, cell: LiveServer
+) -> None:
+    cam = '[data-camera="cam0"]'
+    note = f"document.querySelector('{cam} .device-note')"
+    page.wait(f"document.querySelector('{cam}')?.dataset.state === 'ok'", "camera cam0 ok")
+    page.type("#token", "")
+    page.click(f"{cam} .defects-map")
+    page.wait(f"{note}.dataset.state === 'failed'", "the refused request")
+    assert "unauthorized" in page.text(f"{cam} .device-note") and "API token" in page.text(f"{cam} .device-note")
+    assert cell.worker.settings.cameras[0].defects is None  # refused: nothing changed
+
+    before = cell.worker.settings.cameras[0]
+    page.type("#token", TOKEN)
+    try:
+        page.click(f"{cam} .defects-map")
+        said = page.wait(f"{note}.dataset.state === 'ok' && {note}.textContent", "the map taken from dark frames", 30)
+        mapped = re.fullmatch(r"(\d+) defect pixels mapped from 8 dark frames, patched from now on", said)
+        assert mapped, said
+        path = cell.worker.settings.cameras[0].defects
+        assert path is not None and path.name == "defects-cam0.json" and path.exists()
+        # the card's facts say the map the frames are patched with
+        page.wait(
+            f"/{mapped[1]} defect pixels patched/.test(document.querySelector('{cam} .device-facts').textContent)",
+            "the map in use on the card",
+            15,
+        )
+        assert not page.js(f"document.querySelector('{cam} .defects-map').disabled")
+    finally:
+        assert cell.worker.reconfigure_camera(before) == ""
+    page.wait(f"!/defect pixels/.test(document.querySelector('{cam} .device-facts').textContent)", "no map", 20)
+
+
 def test_page_loads_nothing_from_outside_and_raises_no_script_error(page: Page, cell: LiveServer) -> None:
     urls = page.js("performance.getEntriesByType('resource').map(e => e.name)")
     assert urls, "the page fetched nothing"
