@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import tempfile
 import time
 from dataclasses import replace
 
@@ -181,14 +182,24 @@ def test_a_set_up_that_fails_in_the_child_is_told_with_every_frame_until_a_good_
     assert isinstance(child.measure(frames[0].image).result, PoseResult) and child.restarts == 0
 
 
-def test_no_shared_buffer_file_is_left_behind(frames):
-    before = set(os.listdir("/dev/shm")) if os.path.isdir("/dev/shm") else set()
+def test_no_shared_buffer_file_is_left_behind(frames, monkeypatch):
+    # the buffers this process makes, by name (other processes, e.g. another test worker's service,
+    # make and remove theirs in /dev/shm meanwhile)
+    made: list[str] = []
+    real_mkstemp = tempfile.mkstemp
+
+    def mkstemp(*args, **kwargs):
+        fd, path = real_mkstemp(*args, **kwargs)
+        made.append(path)
+        return fd, path
+
+    monkeypatch.setattr(tempfile, "mkstemp", mkstemp)
     process = MeasureProcess("cam0")
     process.configure(reference_camera(), reference_field(), MeasureSettings())
     process.measure(frames[0].image)
     process.close()
-    after = set(os.listdir("/dev/shm")) if os.path.isdir("/dev/shm") else set()
-    assert not {n for n in after - before if n.startswith("posecell-frames-")}
+    buffers = [p for p in made if os.path.basename(p).startswith("posecell-frames-")]
+    assert buffers and not [p for p in buffers if os.path.exists(p)], buffers
 
 
 def test_a_child_that_cannot_be_started_is_a_sentence_for_every_frame_and_one_log_line(monkeypatch, caplog):

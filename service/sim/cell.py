@@ -229,7 +229,12 @@ class SimCell:
         """
         q0 = self.q_at(t_start_s)
         traj = trajectory_through_poses(
-            self.nominal, [np.asarray(T_base_flange, dtype=np.float64)], q0, speed_mm_s=speed_mm_s, start_at_seed=True
+            self.nominal,
+            [np.asarray(T_base_flange, dtype=np.float64)],
+            q0,
+            speed_mm_s=speed_mm_s,
+            start_at_seed=True,
+            fallback_seeds=[self.q_home_rad],  # where a cancelled program left the arm, the IK can stall
         )
         self._moves = (*[m for m in self._moves if m[0] < t_start_s], (float(t_start_s), traj))
         return float(traj.duration_s)

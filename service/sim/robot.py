@@ -151,6 +151,19 @@ class JointTrajectory:
         return out[0] if t_in.ndim == 0 else out
 
 
+def _ik_from(model: KinematicModel, T_base_flange: ArrayLike, seeds: list[Array]) -> Array:
+    """:meth:`KinematicModel.ik` from the first of ``seeds`` it converges from; the first seed's
+    error when none does."""
+    first: SolveError | None = None
+    for seed in seeds:
+        try:
+            return model.ik(T_base_flange, seed)
+        except SolveError as e:
+            first = first or e
+    assert first is not None
+    raise first
+
+
 def trajectory_through_poses(
     model: KinematicModel,
     T_base_flange_list: Sequence[ArrayLike],
@@ -162,12 +175,13 @@ def trajectory_through_poses(
     joint_speed_deg_s: float = 60.0,
     start_at_seed: bool = False,
     closed: bool = False,
+    fallback_seeds: Sequence[ArrayLike] = (),
 ) -> JointTrajectory:
     """Point-to-point moves through flange poses, planned with ``model`` (the controller's belief).
 
     Each pose is solved by :meth:`KinematicModel.ik` seeded with the previous
     solution (the first with ``q_seed``; a pose that fails from there is tried
-    from ``q_seed`` again). Each move rests at both ends (``mode="rest"``) and
+    from ``q_seed`` again, then from each of ``fallback_seeds``). Each move rests at both ends (``mode="rest"``) and
     lasts the longest of: its flange travel / ``speed_mm_s``, its rotation /
     ``speed_deg_s``, its largest joint move / ``joint_speed_deg_s``; then the
     arm dwells ``dwell_s`` at the pose.
@@ -180,6 +194,9 @@ def trajectory_through_poses(
         Start at ``q_seed`` and move to the first pose (else start there).
     closed : bool
         Return to the start at the end, so that the program loops without a jump.
+    fallback_seeds : sequence of (6,) float, rad
+        Seeds for a pose the numeric IK does not reach from the previous joints or ``q_seed`` (the
+        arm's home: from where an interrupted program left it, the solver can stall mm short).
 
     Raises
     ------
@@ -192,10 +209,7 @@ def trajectory_through_poses(
     qs: list[Array] = [seed] if start_at_seed else []
     for T in T_base_flange_list:
         prev = qs[-1] if qs else seed
-        try:
-            qs.append(model.ik(T, prev))
-        except SolveError:
-            qs.append(model.ik(T, seed))
+        qs.append(_ik_from(model, T, [prev, seed, *(np.asarray(q, dtype=np.float64) for q in fallback_seeds)]))
     if not qs:
         raise ValueError("need at least one pose")
     if closed and len(qs) > 1:

@@ -218,3 +218,20 @@ def test_random_workspace_poses_are_reachable_on_the_seed_branch(name):
         assert model.dexterity_mm(q) > 50.0
     spread = np.std([T[:3, 3] for T in poses], axis=0)
     assert np.all(spread > 50.0)
+
+
+def test_a_move_the_ik_cannot_solve_from_where_the_arm_stands_is_solved_from_the_fallback_seed():
+    # a cancelled program can leave the arm where Levenberg-Marquardt stalls short of the next pose
+    # (seen in the running cell: 4 mm left); the move is then solved from the home joints
+    model = kr15()
+    home = np.radians(HOME_DEG["kr15"])
+    T = model.fk(home + np.radians([10.0, 5.0, -5.0, 10.0, 10.0, 20.0]))
+    stuck = home + np.radians([-9.0, -64.0, -39.0, 30.0, -54.0, 68.0])
+    assert model.branch(stuck) == model.branch(home)
+    with pytest.raises(SolveError) as e:
+        trajectory_through_poses(model, [T], stuck, start_at_seed=True)
+    assert e.value.reason == Reason.no_convergence
+    traj = trajectory_through_poses(model, [T], stuck, start_at_seed=True, fallback_seeds=[home])
+    assert np.allclose(traj.q_at(0.0), stuck)  # from where the arm is
+    dt_mm, dr_rad = pose_error(model.fk(traj.q_at(traj.duration_s)), T)
+    assert dt_mm < 1e-6 and dr_rad < 1e-9
