@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import fcntl
+import os
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +50,43 @@ SLOW_MODULES = (
 )
 
 
+# The test command runs two workers (pytest-xdist, a file each at a time); these modules run with the
+# machine to themselves: they hold the simulated cell to its real-time rate (20 Hz without a gap in
+# seq, a robot outage told within a second, a broker that never slows the cell), time the host, or pin
+# CPUs, which another worker's cell beside them disturbs (seen: 4 frames late at 20 Hz).
+SOLO_MODULES = (
+    "tests/e2e/test_serve.py",
+    "tests/e2e/test_measure_cpus.py",
+    "tests/e2e/test_serve_limits.py",
+    "tests/drivers/test_sim_camera_render.py",
+    "tests/drivers/test_exposure_change.py",
+    "tests/api/test_robot_calibration.py",
+    "tests/api/test_reliability.py",
+    "tests/plant/test_mqtt.py",
+    "tests/test_bench_service.py",
+)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _share_of_the_machine(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Under pytest-xdist, a module's hold on the machine for as long as it runs (its module
+    fixtures, a running cell, inside it): shared for most, whole for SOLO_MODULES. A turnstile first,
+    so that a solo module waiting for the other worker's file is not passed by that worker's next
+    ones (``flock`` has no queue)."""
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+    if not run:  # one process: nothing runs beside it
+        yield
+        return
+    base = Path(tempfile.gettempdir()) / f"posecell-tests-{run}"
+    solo = request.node.nodeid.startswith(SOLO_MODULES)
+    with open(f"{base}.turnstile", "a") as turnstile, open(f"{base}.machine", "a") as machine:
+        fcntl.flock(turnstile, fcntl.LOCK_EX)
+        fcntl.flock(machine, fcntl.LOCK_EX if solo else fcntl.LOCK_SH)
+        if not solo:
+            fcntl.flock(turnstile, fcntl.LOCK_UN)
+        yield  # both are released when the files close
+
+
 def pytest_configure(config: pytest.Config) -> None:
     from service.pipeline.compile import refresh_kernel_caches
 
@@ -57,6 +98,12 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         # the driver contracts run once per driver: the stand-in drivers' cases start processes
         if item.nodeid.startswith(SLOW_MODULES) or "-standin]" in item.nodeid:
             item.add_marker(pytest.mark.slow)
+    # the workers take the files in this order: the long ones first (the short ones then fill the end
+    # evenly), the solo ones last, together (each waits for the other worker's file to end, and that
+    # worker waits while it runs); by module, so that a module's tests stay together
+    items.sort(
+        key=lambda item: 2 if item.nodeid.startswith(SOLO_MODULES) else 0 if item.nodeid.startswith(SLOW_MODULES) else 1
+    )
 
 
 def shared_data(name: str) -> Path:
