@@ -75,8 +75,8 @@ case "$cmd" in
         # two workers (pytest-xdist), each taking a whole test file at a time (its module fixtures,
         # a running cell or a browser, are made once); the files that hold the cell to its real-time
         # rate run alone, last (tests/conftest.py, SOLO_MODULES). On this project's 2-core VM, in one
-        # slow hour: 11.3 min against 15.6 in one process. One core: one process; "-n 0" after
-        # `test` runs everything in this process.
+        # slow hour: 11.3 min against 15.6 in one process (9.8 since the files keep conftest's order).
+        # One core: one process; "-n 0" after `test` runs everything in this process.
         workers=()
         [ "$(nproc)" -ge 2 ] && workers=(-n 2 --dist loadfile)
         exec "$venv/bin/python" -m pytest "${workers[@]}" "$@"

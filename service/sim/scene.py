@@ -138,7 +138,7 @@ def reference_field(
     codes: list[int] = []
     diameters: list[float] = []
     free = [(r, c) for r in range(ny) for c in range(nx) if not is_coded_slot[r, c]]
-    keep = np.round(np.linspace(0, len(free) - 1, n_uncoded)).astype(int) if n_uncoded else []
+    keep: list[int] = np.round(np.linspace(0, len(free) - 1, n_uncoded)).astype(int).tolist() if n_uncoded else []
     uncoded_slots = {free[k] for k in keep}
     code = 0
     n_p = 0
