@@ -61,7 +61,6 @@ SOLO_MODULES = (
     "tests/e2e/test_serve_limits.py",
     "tests/drivers/test_sim_camera_render.py",
     "tests/drivers/test_exposure_change.py",
-    "tests/api/test_robot_calibration.py",
     "tests/api/test_reliability.py",
     "tests/plant/test_mqtt.py",
     "tests/test_bench_service.py",
