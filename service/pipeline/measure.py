@@ -32,7 +32,6 @@ from service.core._kernels import (
     roi_kernel,
 )
 from service.core.geometry.camera_model import BrownFraser
-from service.core.geometry.frames import inv_T
 from service.core.pose.resection import ResectionResult, resect
 from service.core.pose.tracking import PoseSample, predict_pose
 from service.core.results import Failure, PoseResult, Reason, SolveError, TargetTable
@@ -48,12 +47,12 @@ from service.core.targets.identify import (
     eccentricity_px,
     match_coded,
     match_predicted,
-    plane_axes,
     project_field,
 )
 from service.pipeline.brightness import Brightness
 from service.pipeline.hints import size_mismatch, with_calibration_hint, with_image_hints
 from service.pipeline.ranges import detect_settings_for_range
+from service.pipeline.windows import TIGHT_SLACK, PredictedWindows
 
 Array = NDArray[np.float64]
 
@@ -203,12 +202,6 @@ class Outcome:
     brightness: Brightness | None = None  # None: the image could not be read at all
 
 
-#: ROI windows about precise predictions allow this fraction of ``roi_prediction_error_px``
-TIGHT_SLACK = 0.25
-#: An ROI window's rim lies this many of the last frame's blur sigmas beyond the disk (3 px at least): a
-#: disk blurred by 2.5 px reached the 3 px rim at the segmentation level and was refused as too big
-BLUR_RIM_SIGMAS = 2.5
-
 # Unnamed blobs and unnamed targets in view, each at least this many after the coded pose's
 # matching: it is done again from the pose of all named so far, while a round names more
 MORE_ROUND_MIN = 5
@@ -319,20 +312,7 @@ class FrameMeasurer:
         roi_kernel.warm_up()
         json_kernel.warm_up()  # the measurement process encodes the targets
         decode_warm_up()
-        self._radius_mm = (
-            np.where(np.isfinite(field.diameters_mm), field.diameters_mm, np.where(field.is_coded, 10.0, 6.0)) / 2.0
-        )
-        # per field row, for the compiled window sizes
-        self._radius_c = self._radius_mm * camera.c_mm
-        self._coded = np.ascontiguousarray(field.codes >= 0)
-        self._f_px = float(camera.c_mm / camera.mean_pixel_size_mm)  # the ring masks' pinhole
-        # each target's in-plane axes (field rows, 3), for the ring masks: its own plane's, or the field's x, y
-        n = len(field)
-        self._plane_axes = (
-            plane_axes(field.normals)
-            if field.has_normals and field.normals is not None
-            else (np.tile([1.0, 0.0, 0.0], (n, 1)), np.tile([0.0, 1.0, 0.0], (n, 1)))
-        )
+        self._windows = PredictedWindows(camera, field)
 
     def reset(self) -> None:
         """Forget the pose history: the next frame is measured in full."""
@@ -388,7 +368,9 @@ class FrameMeasurer:
         if s.correct_eccentricity and T_init is not None:
             # the offsets are hundredths of a pixel and vary slowly with the pose, so the
             # approximate pose is good enough and saves a second adjustment
-            uv = uv - eccentricity_px(self.camera, p, self._radius_mm[rows], T_init, uv, self.field.normal_rows(rows))
+            uv = uv - eccentricity_px(
+                self.camera, p, self._windows.radius_mm[rows], T_init, uv, self.field.normal_rows(rows)
+            )
         res = resect(self.camera, p, uv, sigma_px=s.sigma_px, T_field_camera_init=T_init)
         clock.lap("resect")
         if res.sigma0_px > s.max_sigma0_px:
@@ -629,50 +611,31 @@ class FrameMeasurer:
         ``check_centred``, when a disk lies further from its window's centre than ``slack`` times
         the prediction allowance; ``least``: found by default ``roi_min_fraction`` of them and
         ``min_targets``. A coded target's ring is masked in its window (in an oblique view it
-        comes within the window of its disk): its own region is its disk predicted by ``T_pred``."""
+        comes within the window of its disk): its own region is its disk predicted by ``T_pred``;
+        where the prediction held, windows that found no disk are measured again with all but the
+        disk masked (:mod:`service.pipeline.windows`)."""
         s = self.settings
         half = self._window_half_size(rows, depth, slack)
-        T_camera_field = inv_T(T_pred)
-        own = roi_kernel.ring_masks_kernel(
-            np.ascontiguousarray(T_camera_field[:3, :3]),
-            np.ascontiguousarray(T_camera_field[:3, 3]),
-            self.field.xyz,
-            *self._plane_axes,
-            self._radius_mm,
-            self._coded,
-            rows,
-            uv_pred,
-            self._f_px,
-            half,
-            float(s.code_family.ring_inner),
-        )
-        try:
-            blobs, found = measure_windows(image, uv_pred, half, self._roi_detect, own)
-        except (ValueError, SolveError):
+        measured = self._windows.measure(image, T_pred, rows, uv_pred, half, self._roi_detect, s.code_family.ring_inner)
+        if measured is None:
             return None
+        blobs, found = measured
         # compiled: as array expressions the gathering and the check were 2 % of an ROI frame
         rows_ok, uv, worst_px2 = roi_kernel.gather_found_kernel(found, blobs.uv, rows, uv_pred)
+        if check_centred and worst_px2 > (slack * s.roi_prediction_error_px) ** 2:
+            return None
+        if len(rows_ok) < len(rows):  # the prediction held: something bright beside a disk refused it
+            blobs, found = self._windows.measure_missed(
+                image, T_pred, rows, uv_pred, half, self._roi_detect, blobs, found
+            )
+            rows_ok, uv, _ = roi_kernel.gather_found_kernel(found, blobs.uv, rows, uv_pred)
         if least is None:
             least = max(s.min_targets, int(np.ceil(s.roi_min_fraction * len(rows))))
         if len(rows_ok) < least:
             return None
-        if check_centred and worst_px2 > (slack * s.roi_prediction_error_px) ** 2:
-            return None
         return rows_ok, uv, blobs
 
     def _window_half_size(self, rows: NDArray[np.int64], depth: Array, slack: float = 1.0) -> NDArray[np.int64]:
-        """Half window (px) per target at ``depth`` (mm): the disk's image radius, the blur (the last frame's), and
-        the prediction error.
-
-        A coded target's ring may reach into its window in an oblique view: it is masked
-        (:meth:`_measure_targets`).
-        """
-        # compiled: as array expressions they were 2 % of an ROI frame
-        return roi_kernel.window_half_size_kernel(
-            self._radius_c,
-            rows,
-            depth,
-            float(self.camera.mean_pixel_size_mm),
-            slack * self.settings.roi_prediction_error_px,
-            max(3.0, BLUR_RIM_SIGMAS * self._blur_px),
-        )
+        """Half window (px) per target at ``depth`` (mm): :meth:`PredictedWindows.half_size` with
+        ``slack`` times the prediction allowance and the last frame's blur."""
+        return self._windows.half_size(rows, depth, slack * self.settings.roi_prediction_error_px, self._blur_px)

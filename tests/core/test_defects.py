@@ -137,8 +137,9 @@ def test_hot_pixels_move_centres_and_lose_roi_targets_until_the_map_patches_them
     spoiled = _score(measurer(False), frames, hot)
     patched = _score(measurer(True), frames, hot)  # in a copy
     assert _score(measurer(True, owned=True), frames, hot) == patched  # in the frame's own pixels, put back
-    # seen: 223 named, 2 centres off by > 0.05 px, 0.0187 px clean; hot: 202.5 named, 40 off; patched: as clean
-    assert spoiled[0] <= clean[0] - 10 and spoiled[1] >= clean[1] + 20, (clean, spoiled)
+    # seen: 223 named, 2 centres off by > 0.05 px, 0.0187 px clean; hot: 217.5 named (202.5 before windows
+    # that found no disk were measured again with all but the disk masked), 41 off; patched: as clean
+    assert spoiled[0] <= clean[0] - 3 and spoiled[1] >= clean[1] + 20, (clean, spoiled)
     assert patched[0] == clean[0] and patched[1] <= clean[1] + 2, (clean, patched)
     assert abs(patched[2] - clean[2]) < 0.001, (clean, patched)
     with pytest.raises(ValueError, match="defect map is of a 1000 x 800 sensor"):

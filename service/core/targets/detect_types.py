@@ -97,6 +97,10 @@ class Blobs:
         """The blobs at ``index`` (any numpy index), in that order."""
         return Blobs(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
 
+    def join(self, other: Blobs) -> Blobs:
+        """These blobs, then ``other``'s."""
+        return Blobs(**{f.name: np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self)})
+
 
 @dataclass(frozen=True)
 class DetectWork:
