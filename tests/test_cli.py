@@ -182,7 +182,7 @@ def test_bench_speed_reports_every_condition_of_the_matrix_beside_the_peer():
 def test_bench_independent_measures_the_sheet_imaged_by_cairo_and_opencv_beside_the_peer():
     from service.bench.independent import VIEWS
 
-    r = run("bench", "independent", "--sheet-frames", "1")
+    r = run("bench", "independent", "--sheet-frames", "1", "--tracked-frames", "4")
     assert r.returncode == 0, r.stderr
     rows = {line.split("|")[1].strip(): line for line in r.stdout.splitlines() if line.startswith("| ")}
     for view in VIEWS:
@@ -197,8 +197,10 @@ def test_bench_independent_measures_the_sheet_imaged_by_cairo_and_opencv_beside_
     for line in tracked:
         cells = [c.strip() for c in line.split("|")[2:-1]]
         # ROI frames, their time, the coded targets named, none misnamed
-        assert cells[0] == "6" and int(cells[1]) >= 4 and float(cells[2]) > 0 and int(cells[5]) > 0, line
+        assert cells[0] == "4" and int(cells[1]) >= 3 and float(cells[2]) > 0 and int(cells[5]) > 0, line
         assert cells[6] == "0", line
+    short = run("bench", "independent", "--tracked-frames", "1")
+    assert short.returncode == 2 and "needs 2 frames or more" in short.stderr, short.stderr
 
 
 def test_bench_ab_measures_two_trees_in_turn_on_the_same_frames():

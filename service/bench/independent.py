@@ -416,10 +416,12 @@ def _tracking(fit_camera: Any, n: int, seed: int, corner: bool = False, light: L
     )
 
 
-def run(n_frames: int = 5, seed: int = 1) -> str:
+def run(n_frames: int = 5, seed: int = 1, tracked_frames: int | None = None) -> str:
     """The tables of ``posecell bench independent``: each row's frames measured by posecell (defaults,
-    full frame) and by the peer, in turn; then a path of ``6 n_frames`` frames tracked (ROI)."""
+    full frame) and by the peer, in turn; then paths of ``tracked_frames`` (by default ``6
+    n_frames``) frames tracked (ROI)."""
     cv2.setNumThreads(1)
+    n_tracked = 6 * n_frames if tracked_frames is None else tracked_frames
     fit = brown_from_opencv(K_OPENCV, DIST_OPENCV, WIDTH, HEIGHT, (PIXEL_MM, PIXEL_MM))
     measurers = {False: FrameMeasurer(fit.camera, sheet()[1]), True: FrameMeasurer(fit.camera, corner_field())}
     rows = [
@@ -467,9 +469,9 @@ def run(n_frames: int = 5, seed: int = 1) -> str:
         "named wrongly | centre RMS px | pose error mm (median) | failed | peer ms median | peer pose error mm | "
         "× peer speed |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-        _tracking(fit.camera, 6 * n_frames, seed + 100),
-        _tracking(fit.camera, 6 * n_frames, seed + 200, corner=True),
+        _tracking(fit.camera, n_tracked, seed + 100),
+        _tracking(fit.camera, n_tracked, seed + 200, corner=True),
         # the rim of an ROI window follows the last frame's blur (with a fixed 3 px rim: 78 % kept)
-        _tracking(fit.camera, 6 * n_frames, seed + 300, light=Light(blur_px=2.5)),
+        _tracking(fit.camera, n_tracked, seed + 300, light=Light(blur_px=2.5)),
     ]
     return "\n".join(rows)

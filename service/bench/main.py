@@ -53,7 +53,7 @@ def _real(args: argparse.Namespace) -> str:
 def _independent(args: argparse.Namespace) -> str:
     from service.bench import independent as bench_independent
 
-    return bench_independent.run(n_frames=args.sheet_frames, seed=args.seed)
+    return bench_independent.run(n_frames=args.sheet_frames, seed=args.seed, tracked_frames=args.tracked_frames)
 
 
 def _ab(args: argparse.Namespace) -> str:

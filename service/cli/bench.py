@@ -40,6 +40,12 @@ def add_parser(subparsers: Subparsers) -> None:
         default=5,
         help="frames per row of the independent section (the printed sheet imaged by cairo and OpenCV)",
     )
+    b.add_argument(
+        "--tracked-frames",
+        type=_tracked_frames,
+        default=None,
+        help="frames of each tracked sequence of the independent section (default: 6 x --sheet-frames)",
+    )
     b.add_argument("--trials", type=int, default=500, help="Monte-Carlo trials for the accuracy tables")
     b.add_argument("--seed", type=int, default=1)
     b.add_argument("--rounds", type=int, default=5, help="repetitions of each fault for the faults section")
@@ -78,6 +84,15 @@ def add_parser(subparsers: Subparsers) -> None:
         "compile on the first run, ~2 min) or a directory holding a service package",
     )
     b.set_defaults(func=run)
+
+
+def _tracked_frames(text: str) -> int:
+    n = int(text)
+    if n < 2:
+        raise argparse.ArgumentTypeError(
+            f"{n}: a tracked sequence needs 2 frames or more (the first is measured in full)"
+        )
+    return n
 
 
 def run(args: argparse.Namespace) -> int:
