@@ -110,3 +110,23 @@ def test_a_window_of_the_sensor_maps_its_pixels_as_the_whole_sensor_does(referen
 def test_a_window_beyond_the_sensor_is_refused(reference_camera, window):
     with pytest.raises(ValueError, match="not inside the 1300 x 1030 px sensor"):
         reference_camera.cropped(*window)
+
+
+def test_the_compiled_projection_and_whitening_take_each_cameras_own_numbers(reference_camera, rng):
+    """The numbers the kernels take are converted once per camera (``projection_args``,
+    ``whitening_args``): a copy made after the original's were cached (cropped, re-parametrised)
+    projects and whitens with its own, as its methods do."""
+    from service.core._kernels.geometry_kernels import project_kernel, whitened_ideal_kernel
+
+    assert reference_camera.projection_args and reference_camera.whitening_args  # cached on the original
+    p_camera = rng.uniform([-200, -150, 800], [200, 150, 1200], size=(40, 3))
+    eye = np.eye(3)
+    for cam in (
+        reference_camera.cropped(100, 60, 900, 700),
+        reference_camera.with_params(reference_camera.params() * 1.05),
+    ):
+        uv, _, _ = project_kernel(eye, np.zeros(3), p_camera, *cam.projection_args, 0.0)
+        np.testing.assert_allclose(uv, cam.pixel_from_camera(p_camera), rtol=0, atol=1e-9)
+        xy, W = whitened_ideal_kernel(np.ascontiguousarray(uv), *cam.whitening_args)
+        np.testing.assert_allclose(xy, cam.ideal_from_pixel(uv), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(W, np.linalg.inv(cam.ideal_from_pixel_jacobian(uv)), rtol=1e-9)

@@ -34,3 +34,12 @@ def kernel_array(a: Any, dtype: Any = np.float64) -> NDArray[Any]:
     if type(a) is np.ndarray and a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable:
         return a
     return np.require(a, dtype, ["C", "W"])
+
+
+def kernel_vector(a: Any, n: int, dtype: Any = np.float64) -> NDArray[Any]:
+    """``a`` (a scalar, or n values) as a kernel array (n,) of ``dtype``. Not by ``np.broadcast_to``
+    when ``a`` already holds n values: its read-only view then took np.require's copy, ~7 us twice
+    an ROI frame (the windows' half sizes, the disks' radii)."""
+    if type(a) is np.ndarray and a.shape == (n,):
+        return kernel_array(a, dtype)
+    return np.full(n, a, dtype=dtype)

@@ -16,6 +16,7 @@ inverse; Newton's method on the analytic 2x2 Jacobian converges to far below
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -102,6 +103,28 @@ class BrownFraser:
     @property
     def mean_pixel_size_mm(self) -> float:
         return 0.5 * (self.pixel_size_mm[0] + self.pixel_size_mm[1])
+
+    # the model's numbers as the compiled kernels take them, converted once per camera: converted at
+    # every call they cost ~5 us three times an ROI frame (the prediction, the eccentricity, the resection)
+
+    @cached_property
+    def whitening_args(self) -> tuple[float, ...]:
+        """The image centre (px), pixel size, principal point and correction, in the order of
+        :func:`~service.core._kernels.geometry_kernels.whitened_ideal_kernel` after its pixels."""
+        px, py = self.pixel_size_mm
+        return ((self.width - 1) / 2.0, (self.height - 1) / 2.0, px, py, *map(float, self._xy0_and_correction()))
+
+    @cached_property
+    def projection_args(self) -> tuple[float | int, ...]:
+        """c, the correction, principal point, pixel size and image size, in the order of
+        :func:`~service.core._kernels.geometry_kernels.project_kernel` after its pose and points."""
+        K1, K2, K3, P1, P2, B1, B2 = map(float, self._xy0_and_correction()[2:])
+        px, py = self.pixel_size_mm
+        xy0 = (float(self.x0_mm), float(self.y0_mm))
+        return (float(self.c_mm), K1, K2, K3, P1, P2, B1, B2, *xy0, px, py, int(self.width), int(self.height))
+
+    def _xy0_and_correction(self) -> tuple[float, ...]:
+        return (self.x0_mm, self.y0_mm, self.K1, self.K2, self.K3, self.P1, self.P2, self.B1, self.B2)
 
     # -- pixel <-> sensor ---------------------------------------------------
 

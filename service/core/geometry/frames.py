@@ -76,9 +76,12 @@ def inv_T(T_a_b: ArrayLike) -> Array:
     True
     """
     T_a_b = np.asarray(T_a_b, dtype=np.float64)
-    R = T_a_b[:3, :3]
-    t = T_a_b[:3, 3]
-    return make_T(R.T, -R.T @ t)
+    R_b_a = T_a_b[:3, :3].T
+    T_b_a = np.zeros((4, 4))  # not make_T: np.eye and its conversions were half of this, twice an ROI frame
+    T_b_a[:3, :3] = R_b_a
+    T_b_a[:3, 3] = -R_b_a @ T_a_b[:3, 3]
+    T_b_a[3, 3] = 1.0
+    return T_b_a
 
 
 def apply_T(T_a_b: ArrayLike, p_b: ArrayLike) -> Array:

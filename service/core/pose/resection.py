@@ -269,15 +269,7 @@ def resect(
     n, c = len(p), float(camera.c_mm)
     # camera.ideal_from_pixel and the inverse of camera.ideal_from_pixel_jacobian in one compiled pass:
     # as two array pipelines they cost a sixth of an ROI frame's resection
-    xy, W = whitened_ideal_kernel(
-        q,
-        (camera.width - 1) / 2.0,
-        (camera.height - 1) / 2.0,
-        *map(float, camera.pixel_size_mm),
-        float(camera.x0_mm),
-        float(camera.y0_mm),
-        *map(float, (camera.K1, camera.K2, camera.K3, camera.P1, camera.P2, camera.B1, camera.B2)),
-    )
+    xy, W = whitened_ideal_kernel(q, *camera.whitening_args)
     spread = check_geometry(p, xy)
     nan = np.nan
 

@@ -67,7 +67,8 @@ def check_observations(p_field: ArrayLike, uv: ArrayLike) -> tuple[Array, Array]
         raise ValueError(f"uv must have shape (N, 2), got {q.shape}")
     if len(p) != len(q):
         raise ValueError(f"p_field has {len(p)} points but uv has {len(q)}")
-    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+    # the ufunc's own reduce: np.all's wrappers cost ~10 us of an ROI frame
+    if not (np.logical_and.reduce(np.isfinite(p), axis=None) and np.logical_and.reduce(np.isfinite(q), axis=None)):
         raise SolveError(Reason.bad_input, "Field or image coordinates contain NaN or infinity.")
     if len(p) < 4:
         msg = f"Resection needs at least 4 targets, got {len(p)}."

@@ -20,7 +20,7 @@ from typing import Literal, overload
 import numpy as np
 from numpy.typing import NDArray
 
-from service.core._kernels import kernel_array
+from service.core._kernels import kernel_array, kernel_vector
 from service.core._kernels.geometry_kernels import (
     eccentricity_kernel,
     match_kernel,
@@ -122,23 +122,10 @@ def project_field(
         np.ascontiguousarray(T[:3, :3]),
         np.ascontiguousarray(T[:3, 3]),
         field.xyz,
-        float(camera.c_mm),
-        float(camera.K1),
-        float(camera.K2),
-        float(camera.K3),
-        float(camera.P1),
-        float(camera.P2),
-        float(camera.B1),
-        float(camera.B2),
-        float(camera.x0_mm),
-        float(camera.y0_mm),
-        float(camera.pixel_size_mm[0]),
-        float(camera.pixel_size_mm[1]),
-        int(camera.width),
-        int(camera.height),
+        *camera.projection_args,
         float(margin_px),
     )
-    rows = np.flatnonzero(inside)
+    rows = inside.nonzero()[0]
     if field.has_normals and field.normals is not None:
         to_camera = T[:3, 3] - field.xyz[rows]
         facing = np.einsum("ij,ij->i", field.normals[rows], to_camera)
@@ -185,17 +172,9 @@ def eccentricity_px(
     T = np.asarray(T_field_camera, dtype=np.float64)
     R_camera_field = np.ascontiguousarray(T[:3, :3].T)
     t_camera_field = -R_camera_field @ T[:3, 3]
-    radius = kernel_array(np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (n,)))
+    radius = kernel_vector(radius_mm, n)
     # the pixels' whitening (inverse ideal-from-pixel Jacobian) in one compiled pass, as the resection gets it
-    _, W = whitened_ideal_kernel(
-        kernel_array(uv),
-        (camera.width - 1) / 2.0,
-        (camera.height - 1) / 2.0,
-        *map(float, camera.pixel_size_mm),
-        float(camera.x0_mm),
-        float(camera.y0_mm),
-        *map(float, (camera.K1, camera.K2, camera.K3, camera.P1, camera.P2, camera.B1, camera.B2)),
-    )
+    _, W = whitened_ideal_kernel(kernel_array(uv), *camera.whitening_args)
     return eccentricity_kernel(
         ex,
         ey,
