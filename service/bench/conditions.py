@@ -3,7 +3,7 @@
 Each row renders the same kind of path (see :func:`service.bench.speed.frames_along_path`) under
 one condition — read noise of 1, 2, 4 and 6 DN over a 12 DN background, the ring light's hot
 spot, a gradient, oblique views, blur, the smear of the arm's motion during the exposure, printed
-labels (text that is bright but no target), hot pixels with and without the sensor's defect map — and
+labels (text that is bright but no target), hot and dead pixels with and without the sensor's defect map — and
 measures it three ways in the same run: posecell on the full frame, posecell with ROI tracking
 along the path, and the OpenCV peer (threshold + components + ``solvePnP``, given the identities).
 Per row: median and p99 ms per frame, the median pose error against the rendering's truth, and
@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from service.core.geometry.frames import inv_T, pose_difference
 from service.core.geometry.opencv_compat import opencv_from_brown
 from service.core.results import PoseResult
-from service.core.targets.defects import DefectMap, find_defects
+from service.core.targets.defects import DefectMap, find_dead_pixels, find_defects
 from service.pipeline.measure import FrameMeasurer
 from service.sim.render import RenderedFrame, RenderSettings
 from service.sim.scene import reference_camera, reference_field
@@ -40,11 +40,14 @@ class Condition:
     view_deg: float = 80.0  # centre of the path's view angle (90: head-on), +-10 deg along it
     labels: bool = False
     # posecell measures with the sensor's defect map, found as `posecell calibrate defects` finds it
-    # from DARK_FRAMES frames with the ring light off
+    # from DARK_FRAMES frames with the ring light off (hot pixels) and as many of a white card before
+    # the lens with it on (dead pixels)
     defect_map: bool = False
 
 
 HOT = RenderSettings(exposure_scale=0.8, hot_pixels=5e-4)
+DEAD = RenderSettings(exposure_scale=0.8, dead_pixels=5e-4)
+CARD_DN = 150.0  # the white card's level in the flat frames (8-bit DN at its centre)
 PASSES = 3  # over each row's frames, posecell and the peer in turn
 BLOCK = 10  # frames each tool measures before the other takes its turn
 
@@ -62,6 +65,9 @@ CONDITIONS = (
     # 0.05 % of the pixels hot (670, 200 DN of dark current): without a map, and with the one found
     Condition("hot pixels 0.05 %", HOT),
     Condition("hot pixels 0.05 %, defect map", HOT, defect_map=True),
+    # 0.05 % of the pixels dead (670, no response): without a map, and with the one found in flat frames
+    Condition("dead pixels 0.05 %", DEAD),
+    Condition("dead pixels 0.05 %, defect map", DEAD, defect_map=True),
 )
 DARK_FRAMES = 8
 
@@ -146,15 +152,21 @@ def _share(counts: list[tuple[int, int, int]]) -> str:
     return f"{100.0 * sum(c[0] for c in counts) / seen:.1f}" if seen else "—"
 
 
-def _dark_frames_map(camera: Any, field: Any, render: RenderSettings, seed: int) -> DefectMap:
-    """The sensor's defect map as ``posecell calibrate defects`` finds it: from frames with the light off."""
+def _defect_map(camera: Any, field: Any, render: RenderSettings, seed: int) -> DefectMap:
+    """The sensor's defect map as ``posecell calibrate defects`` finds it: hot pixels from frames with
+    the light off, dead ones from frames of a white card before the lens with it on."""
     from service.sim.render import render_frame
     from service.sim.scene import reference_pose
 
     rng = np.random.default_rng(seed)
-    dark = replace(render, lit=False)
-    frames = [render_frame(camera, field, reference_pose(), dark, rng).image for _ in range(DARK_FRAMES)]
-    return find_defects(frames).defects
+
+    def frames(settings: RenderSettings) -> list[NDArray[np.generic]]:
+        return [render_frame(camera, field, reference_pose(), settings, rng).image for _ in range(DARK_FRAMES)]
+
+    hot = find_defects(frames(replace(render, lit=False))).defects
+    if render.dead_pixels == 0:
+        return hot
+    return hot.merged(find_dead_pixels(frames(replace(render, card_dn=CARD_DN))).defects)
 
 
 def run(n_frames: int = 30, seed: int = 1, passes: int = PASSES) -> str:
@@ -173,7 +185,7 @@ def run(n_frames: int = 30, seed: int = 1, passes: int = PASSES) -> str:
         frames = frames_along_path(n_frames, seed + k, cond.render, cond.view_deg)
         label_rng = np.random.default_rng(seed + 1000 + k)
         images = [add_labels(f.image, label_rng) if cond.labels else f.image for f in frames]
-        defects = _dark_frames_map(camera, field, cond.render, seed + k) if cond.defect_map else None
+        defects = _defect_map(camera, field, cond.render, seed + k) if cond.defect_map else None
         # the frames are the bench's own, as the service's measurement child owns its: patched in place
         full = FrameMeasurer(camera, field, None, defects, frames_owned=True)
         tracker = FrameMeasurer(camera, field, None, defects, frames_owned=True)

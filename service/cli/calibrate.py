@@ -86,21 +86,29 @@ def _add_handeye_session(cal: Subparsers) -> None:
 def _add_defects(cal: Subparsers) -> None:
     df = cal.add_parser(
         "defects",
-        help="the sensor's defect (hot) pixels, from frames in which only they stay put",
-        description="Finds the pixels that stand above their 3 x 3 neighbourhood in most of the frames: "
+        help="the sensor's defect pixels: hot ones from dark frames, dead ones from flat frames",
+        description="Finds the pixels that stand above their 3 x 3 neighbourhood in most of the frames (hot): "
         "take them with the ring light off or the lens capped, at the working exposure and gain (or from "
-        "several views: targets move, defects do not). The map written is patched into every frame before "
-        "it is measured (posecell measure --defects, [[cameras]] defects).",
+        "several views: targets move, defects do not); with --flat, also the pixels that lie below it in "
+        "frames of an evenly lit field (dead): a white card or a diffuser before the lens under the ring "
+        "light, well below full scale. The map written is patched into every frame before it is measured "
+        "(posecell measure --defects, [[cameras]] defects).",
     )
-    df.add_argument("images", nargs="+", metavar="IMAGE", help="frames (or folders of frames), at least 5")
+    df.add_argument("images", nargs="*", metavar="IMAGE", help="dark frames (or folders of them), at least 5")
+    df.add_argument(
+        "--flat", nargs="+", metavar="FLAT", default=[], help="flat frames (or folders of them), at least 5"
+    )
     df.add_argument("-o", "--output", required=True, type=Path, help="defects.json to write")
     df.add_argument(
         "--min-fraction", type=float, default=None, help="of the frames a pixel must stand out in (default 0.8)"
     )
     df.add_argument(
-        "--k-sigma", type=float, default=None, help="how far above its neighbours, in noise sigmas (default 8)"
+        "--k-sigma", type=float, default=None, help="how far above (below) its neighbours, in noise sigmas (default 8)"
     )
-    df.add_argument("--min-dn", type=float, default=None, help="and at least this many 8-bit DN (default 12)")
+    df.add_argument("--min-dn", type=float, default=None, help="hot: and at least this many 8-bit DN (default 12)")
+    df.add_argument(
+        "--min-drop", type=float, default=None, help="dead: and at least this share of the level below (default 0.3)"
+    )
     df.add_argument(
         "--bit-depth", type=int, default=None, help="significant bits of 16-bit frames (e.g. 12), as for measure"
     )
@@ -113,32 +121,50 @@ def run_defects(args: argparse.Namespace) -> int:
     from service.store import formats
     from service.workflows.calibrate_camera import image_paths
 
-    paths = image_paths(args.images)
-    frames = [formats.read_image(p) for p in paths]
-    options = {"k_sigma": args.k_sigma, "min_dn": args.min_dn, "min_fraction": args.min_fraction}
+    if not args.images and not args.flat:
+        raise CliError("give dark frames (IMAGE ...), flat frames (--flat FLAT ...) or both")
     full_dn = None if args.bit_depth is None else float(2**args.bit_depth - 1)
+    common = {"k_sigma": args.k_sigma, "min_fraction": args.min_fraction}
+    hot = dead = None
     try:
-        found = defects.find_defects(frames, full_dn=full_dn, **{k: v for k, v in options.items() if v is not None})
+        if args.images:
+            frames = [formats.read_image(p) for p in image_paths(args.images)]
+            options = {k: v for k, v in {**common, "min_dn": args.min_dn}.items() if v is not None}
+            hot = defects.find_defects(frames, full_dn=full_dn, **options)
+        if args.flat:
+            flats = [formats.read_image(p) for p in image_paths(args.flat)]
+            options = {k: v for k, v in {**common, "min_drop": args.min_drop}.items() if v is not None}
+            dead = defects.find_dead_pixels(flats, full_dn=full_dn, **options)
     except ValueError as e:
         raise CliError(str(e)) from None
-    m = found.defects
-    formats.write_defects(args.output, m, frames=found.n_frames, threshold_dn=float(found.threshold_dn.max()))
-    share = len(m) / (m.width * m.height)
-    print_json(
-        {
-            "ok": True,
-            "defects": len(m),
-            "share": share,
-            "frames": found.n_frames,
-            "threshold_dn": [float(found.threshold_dn.min()), float(found.threshold_dn.max())],
-            "stood_out_sometimes": found.sometimes,
-            "output": str(args.output),
-        }
-    )
+    found = [search.defects for search in (hot, dead) if search is not None]
+    m = found[0] if len(found) == 1 else found[0].merged(found[1])  # one sensor: hot and dead pixels alike
+    record: dict[str, object] = {}
+    if hot is not None:
+        record.update(frames=hot.n_frames, threshold_dn=float(hot.threshold_dn.max()))
+    if dead is not None:
+        record.update(flat_frames=dead.n_frames, flat_threshold_dn=float(dead.threshold_dn.max()))
+    formats.write_defects(args.output, m, **record)
+    share = (len(m) - m.n_dead) / (m.width * m.height)
+    out: dict[str, object] = {"ok": True, "defects": len(m), "hot": len(m) - m.n_dead, "dead": m.n_dead, "share": share}
+    if hot is not None:
+        out.update(
+            frames=hot.n_frames,
+            threshold_dn=[float(hot.threshold_dn.min()), float(hot.threshold_dn.max())],
+            stood_out_sometimes=hot.sometimes,
+        )
+    if dead is not None:
+        out.update(flat_frames=dead.n_frames, flat_stood_out_sometimes=dead.sometimes, unjudged=dead.unjudged)
+    print_json({**out, "output": str(args.output)})
     if share > defects.SUSPECT_SHARE:
         print_err(
-            f"posecell calibrate defects: warning: {share:.2%} of the pixels are defects: frames of one view "
+            f"posecell calibrate defects: warning: {share:.2%} of the pixels are hot: frames of one view "
             "count its small targets as defects; take them with the ring light off, or from several views"
+        )
+    if dead is not None and dead.unjudged:
+        print_err(
+            f"posecell calibrate defects: warning: {dead.unjudged} pixels were not judged dead or good: their "
+            "neighbourhood was not lit in enough of the flat frames (light the whole field evenly)"
         )
     return 0
 

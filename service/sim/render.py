@@ -96,6 +96,14 @@ class RenderSettings:
     hot_pixels: float = 0.0
     hot_pixel_dn: float = 200.0
     hot_pixel_seed: int = 0
+    # dead pixels: this share of the sensor's pixels, no response (0 DN whatever the light), the same
+    # ones in every frame of a seed
+    dead_pixels: float = 0.0
+    dead_pixel_seed: int = 1
+    # a white card held before the lens under the ring light (flat frames, to map dead pixels): with
+    # the light on the whole image at this level, 45 % less in the corners (the light's cone and the
+    # lens's vignetting), the scene behind it hidden; 0: no card
+    card_dn: float = 0.0
     # the light's change across each target's pattern (step 3 of the module's docstring); False:
     # one level a target, for the tests of the geometry alone (an intensity centroid of an evenly
     # lit pattern is its area centroid)
@@ -115,6 +123,7 @@ class RenderSettings:
             "hot_spot_dn",
             "motion_blur_px",
             "hot_pixel_dn",
+            "card_dn",
         ):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
@@ -123,8 +132,9 @@ class RenderSettings:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be finite and positive, got {v}")
-        if not 0.0 <= self.hot_pixels <= 0.01:
-            raise ValueError(f"hot_pixels must be a share of the pixels in [0, 0.01], got {self.hot_pixels}")
+        for name in ("hot_pixels", "dead_pixels"):
+            if not 0.0 <= getattr(self, name) <= 0.01:
+                raise ValueError(f"{name} must be a share of the pixels in [0, 0.01], got {getattr(self, name)}")
         if not np.isfinite(self.motion_angle_deg):
             raise ValueError(f"motion_angle_deg must be finite, got {self.motion_angle_deg}")
         if not np.isfinite(self.gradient_dn):
@@ -299,6 +309,12 @@ def _compose(
     f32 = np.float32
     height, width = signal.shape
     img = signal
+    if s.lit and s.card_dn > 0:
+        r2 = (np.arange(width, dtype=f32)[None, :] - f32((width - 1) / 2)) ** 2 / f32(((width - 1) / 2) ** 2)
+        r2 = (
+            r2 + (np.arange(height, dtype=f32)[:, None] - f32((height - 1) / 2)) ** 2 / f32(((height - 1) / 2) ** 2)
+        ) / 2
+        img[:] = f32(s.card_dn) * (f32(1.0) - f32(0.45) * r2)
     if s.blur_sigma_px > 0:
         k = 2 * int(np.ceil(3.0 * s.blur_sigma_px)) + 1  # +-3 sigma; cv2 normalises the kernel
         # in place: every fresh full-frame buffer costs ~1 ms of page faults
@@ -343,6 +359,8 @@ def _compose(
         noise_kernel(img, u16, z_table, f32(s.read_noise_dn**2 * epd))
         if low is not None:
             img[low] = exact
+    if s.dead_pixels > 0:
+        img.reshape(-1)[hot_pixel_indices(height, width, s.dead_pixels, s.dead_pixel_seed)] = f32(0.0)
     full_scale = 2**s.bit_depth - 1
     out = np.empty(img.shape, dtype=np.uint8 if s.bit_depth == 8 else np.uint16)
     quantise_kernel(img, f32(full_scale / 255.0), full_scale, out)
@@ -351,8 +369,8 @@ def _compose(
 
 @lru_cache(maxsize=4)
 def hot_pixel_indices(height: int, width: int, share: float, seed: int) -> NDArray[np.intp]:
-    """The flat indices of a ``height`` x ``width`` sensor's hot pixels: ``share`` of them, drawn once
-    from ``seed`` (the same in every frame, as a sensor's are)."""
+    """The flat indices of a ``height`` x ``width`` sensor's hot (or dead) pixels: ``share`` of them,
+    drawn once from ``seed`` (the same in every frame, as a sensor's are)."""
     rng = np.random.default_rng(seed)
     return np.sort(rng.choice(height * width, round(share * height * width), replace=False))
 

@@ -122,3 +122,43 @@ def test_a_map_whose_configuration_cannot_be_saved_is_not_put_in_use(tmp_path, m
             assert "not in use" in r.json()["message"]
             config = c.get("/config").json()["cameras"][0]
         assert config["defects"] is None and config["strobe"]["enabled"], config
+
+
+def test_the_service_maps_dead_pixels_from_flat_frames_and_keeps_the_hot_ones(tmp_path):
+    """A replayed recording of a white card before the lens under the ring light (flat frames, 600
+    pixels dead), the camera's map of hot pixels in use: every dead pixel found and none else, the
+    hot ones kept beside them, the new map in use; flat frames asked for with the light off refused."""
+    import cv2
+
+    rng = np.random.default_rng(5)
+    n = 1030 * 1300
+    dead = np.unique(rng.integers(0, n, 600))
+    (tmp_path / "flat").mkdir()
+    for k in range(6):
+        f = rng.normal(140.0, 6.0, n)
+        f[dead] = rng.uniform(0, 5, dead.size)
+        cv2.imwrite(
+            str(tmp_path / "flat" / f"{k:03d}.png"), np.clip(np.rint(f), 0, 255).astype(np.uint8).reshape(1030, 1300)
+        )
+    _map(tmp_path / "hot.json")
+    hot = formats.read_defects(tmp_path / "hot.json")
+    camera = {"driver": "replay", "frame_rate_hz": 15.0, "strobe": None, "options": {"source": str(tmp_path / "flat")}}
+    cameras = [{**camera, "defects": str(tmp_path / "hot.json")}]
+    for server in run_server(live_settings(tmp_path / "state", cameras=cameras)):
+        server.wait_for(lambda h: h["cameras"]["cam0"]["state"] == "ok", 60.0, "the camera")
+        with server.client() as c:
+            r = c.post("/calibration/camera/defects", json={"kind": "dead", "light": "off"})
+            assert r.status_code == 422 and "light 'as_is'" in r.json()["message"], r.text
+            r = c.post("/calibration/camera/defects", json={"kind": "dead", "frames": 5})
+            assert r.status_code == 200, r.text
+            out = r.json()
+        saved = formats.read_defects(out["file"])
+        assert np.array_equal(np.sort(saved.of_kind(dead=True).flat), dead)  # every dead pixel, and nothing else
+        assert set(saved.of_kind(dead=False).flat.tolist()) == set(hot.flat.tolist()) - set(dead.tolist())
+        assert out["kind"] == "dead" and out["found"] == dead.size and out["kept"] == len(hot), out
+        assert (out["dead"], out["hot"]) == (dead.size, len(saved) - dead.size) and out["applied"], out
+        server.wait_for(
+            lambda h: (h["processing"]["measurement"]["cam0"]["defects"] or {}).get("file") == out["file"],
+            30.0,
+            "the new map in use",
+        )

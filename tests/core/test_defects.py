@@ -3,6 +3,7 @@
 Hot pixels sit at the same place in every frame. Inside a target's window they join its moments and
 its edges, and ROI tracking's windows refuse a second bright blob: without a map, 0.05 % of the
 pixels hot moved ~1 % of the centres by more than 0.05 px and cost ROI tracking ~9 % of its targets.
+Dead pixels are holes in the disks they fall on: 0.05 % of them moved ~3 % of the centres.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import pytest
 
 from service.bench.speed import frames_along_path
 from service.core.results import PoseResult
-from service.core.targets.defects import DefectMap, find_defects
+from service.core.targets.defects import DefectMap, find_dead_pixels, find_defects
 from service.pipeline.measure import FrameMeasurer, MeasureSettings
 from service.sim.scene import reference_camera, reference_field
 
@@ -72,6 +73,62 @@ def test_frames_from_several_views_find_the_defects_and_not_the_targets():
     flat = set(found.defects.flat.tolist())
     assert set(hot.tolist()) <= flat and len(flat - set(hot.tolist())) <= 5, len(flat - set(hot.tolist()))
     assert found.sometimes > 1000  # the targets' pixels stood out in some frames, not in enough
+
+
+def _flats(n_frames: int, dead: np.ndarray, rng: np.random.Generator, weak: np.ndarray | None = None) -> list:
+    """Flat frames: an evenly lit card (150 DN at the centre, 55 % of it in the corners: the lens's
+    vignetting) with shot noise, a shadow over its first 100 columns (20 DN, a sharp edge), the
+    ``dead`` pixels at 0-6 DN, ``weak`` ones at 85 % of their neighbours (not defects)."""
+    v, u = np.mgrid[0:H, 0:W]
+    r2 = ((u - W / 2) ** 2 + (v - H / 2) ** 2) / ((W / 2) ** 2 + (H / 2) ** 2)
+    level = 150.0 * (1.0 - 0.45 * r2)
+    level[:, :100] = 20.0
+    out = []
+    for _ in range(n_frames):
+        f = level * (1.0 + rng.normal(0.0, 0.01, (H, W))) + rng.normal(0.0, np.sqrt(level / 4.0))
+        if weak is not None:
+            f.reshape(-1)[weak] *= 0.85
+        f.reshape(-1)[dead] = rng.uniform(0, 6, dead.size)
+        out.append(np.clip(np.rint(f), 0, 255).astype(np.uint8))
+    return out
+
+
+def test_flat_frames_give_exactly_the_dead_pixels():
+    """Below their neighbours by 8 noise sigmas and 30 % of the level: the dead ones, lit or in the
+    shadow, not a pixel a little weak nor the shadow's edge; frames that are not flat are refused."""
+    rng = np.random.default_rng(2)
+    dead, weak = _hot(300, seed=4), _hot(60, seed=11)
+    weak = np.setdiff1d(weak, dead)
+    found = find_dead_pixels(_flats(6, dead, rng, weak))
+    lit = dead[dead % W >= 101]  # the shadow's (and its edge's) pixels are not judged
+    assert np.array_equal(np.sort(found.defects.flat), lit), (len(found.defects), len(lit))
+    assert found.defects.n_dead == len(lit) and found.n_frames == 6
+    assert 100 * H <= found.unjudged <= 101 * H + 2 * len(dead)
+    with pytest.raises(ValueError, match="at least 5"):
+        find_dead_pixels(_flats(4, dead, rng))
+    with pytest.raises(ValueError, match="flat frame 2 is not lit"):
+        find_dead_pixels([*_flats(1, dead, rng), *_dark(4, dead, rng)])
+    clipped = [np.clip(f.astype(np.int32) * 3, 0, 255).astype(np.uint8) for f in _flats(5, dead, rng)]
+    with pytest.raises(ValueError, match="flat frame 1 is clipped"):
+        find_dead_pixels(clipped)
+
+
+def test_a_map_of_hot_and_dead_pixels_keeps_which_is_which():
+    hot = DefectMap(W, H, np.array([[5, 6], [300, 200]]))
+    dead = DefectMap(W, H, np.array([[300, 200], [700, 500]]), np.array([True, True]))
+    both = hot.merged(dead)
+    assert both.uv.tolist() == [[5, 6], [300, 200], [700, 500]] and both.dead.tolist() == [False, True, True]
+    d = both.to_dict(frames=8)
+    assert d["pixels"] == both.uv.tolist() and d["dead_pixels"] == [[300, 200], [700, 500]]  # a reader patches all
+    back = DefectMap.from_dict(d)
+    assert back.uv.tolist() == both.uv.tolist() and back.dead.tolist() == both.dead.tolist()
+    assert both.of_kind(dead=False).uv.tolist() == [[5, 6]] and both.of_kind(dead=True).n_dead == 2
+    assert both.cropped(200, 100, 1000, 800).dead.tolist() == [True, True]
+    assert "dead_pixels" not in hot.to_dict()
+    with pytest.raises(ValueError, match="must be one of 'pixels'"):
+        DefectMap.from_dict({**d, "dead_pixels": [[1, 1]]})
+    with pytest.raises(ValueError, match="cannot join"):
+        hot.merged(DefectMap(10, 10, np.zeros((0, 2), dtype=np.intp)))
 
 
 def test_a_patch_follows_an_edge_and_in_place_puts_the_pixels_back():
@@ -144,3 +201,32 @@ def test_hot_pixels_move_centres_and_lose_roi_targets_until_the_map_patches_them
     assert abs(patched[2] - clean[2]) < 0.001, (clean, patched)
     with pytest.raises(ValueError, match="defect map is of a 1000 x 800 sensor"):
         FrameMeasurer(reference_camera(), reference_field(), None, defects.cropped(0, 0, 1000, 800))
+
+
+def test_dead_pixels_move_centres_until_the_map_of_flat_frames_patches_them():
+    frames = frames_along_path(16, 3)
+    dead = _hot(670, seed=5)  # 0.05 % of the pixels, reading 0 whatever the light
+    dead = dead[dead % W >= 101]  # (the flat frames' shadow judges none)
+    found = find_dead_pixels(_flats(5, dead, np.random.default_rng(6))).defects
+    assert np.array_equal(np.sort(found.flat), dead)
+
+    def score(with_map: bool, spoil: bool) -> tuple[float, int, float]:
+        m = FrameMeasurer(reference_camera(), reference_field(), MeasureSettings(), found if with_map else None)
+        named, errors = [], []
+        for k, f in enumerate(frames):
+            img = f.image.copy()
+            if spoil:
+                img.reshape(-1)[dead] = 0
+            result = m.measure(img, t_s=0.004 * k).result
+            assert isinstance(result, PoseResult), result
+            truth = dict(zip(f.ids, f.uv_true, strict=True))
+            named.append(len(result.targets))
+            errors += [np.asarray(t.uv) - truth[t.id] for t in result.targets]
+        e = np.hypot(*np.array(errors).T)
+        return float(np.median(named)), int(np.sum(e > 0.05)), float(np.sqrt(np.mean(e**2)))
+
+    clean, spoiled, patched = score(False, False), score(False, True), score(True, True)
+    # seen: 223 named, 2 centres off by > 0.05 px, 0.0187 px RMS clean; dead: 119 off, 0.0273 px; patched: as clean
+    assert spoiled[1] >= clean[1] + 50 and spoiled[2] > 1.2 * clean[2], (clean, spoiled)
+    assert patched[0] == clean[0] and patched[1] <= clean[1] + 2, (clean, patched)
+    assert abs(patched[2] - clean[2]) < 0.001, (clean, patched)

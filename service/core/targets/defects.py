@@ -4,14 +4,20 @@ A hot pixel (dark current, a pixel stuck high) sits at the same place in every f
 measurement takes a lone bright pixel for a speck, but inside a target's window it is part of the
 window's moments and edges: on the reference scene with 0.05 % of the pixels hot (669 of them,
 at 250 DN) 125 of ~9 000 centres moved by more than 0.05 px (up to 0.19), and ROI tracking, whose
-windows refuse a second bright blob, lost 21 of 226 targets a frame. Patched from their good
+windows refuse a second bright blob, lost 21 of 226 targets a frame. A dead pixel (no response, a
+pixel stuck low) is a hole in a disk it falls on: with 0.05 % of the pixels dead, 119 of ~3 600
+centres moved by more than 0.05 px (up to 0.18; 2 without them). Patched from their good
 neighbours, such pixels cost the measurement nothing (``tests/core/test_defects.py``).
 
-Found from frames in which the sensor's own defects are the only thing that stays put: frames
-with the ring light off or the lens capped (at the working exposure and gain), or frames from
-several views (targets move from frame to frame, defects do not). A pixel is a defect where it
-stands above the median of its 3 x 3 neighbourhood by more than ``k_sigma`` times the frame's noise
-(and ``min_dn``) in at least ``min_fraction`` of the frames. Pure computation: no I/O.
+Hot pixels are found from frames in which the sensor's own defects are the only thing that stays
+put: frames with the ring light off or the lens capped (at the working exposure and gain), or
+frames from several views (targets move from frame to frame, defects do not). A pixel is hot where
+it stands above the median of its 3 x 3 neighbourhood by more than ``k_sigma`` times the frame's
+noise (and ``min_dn``) in at least ``min_fraction`` of the frames (:func:`find_defects`). Dark
+frames cannot show a dead pixel: it is found in flat frames, an evenly lit field (a white card or
+a diffuser before the lens under the ring light), where it lies below its neighbourhood's median by
+``k_sigma`` noise sigmas and by ``min_drop`` of the level there (:func:`find_dead_pixels`). One map
+holds both kinds (:meth:`DefectMap.merged`); each is patched alike. Pure computation: no I/O.
 """
 
 from __future__ import annotations
@@ -34,17 +40,24 @@ MIN_FRACTION = 0.8  # of the frames
 MIN_FRAMES = 5
 # more defects than this share of the pixels is no sensor's: most likely the frames' targets did not move
 SUSPECT_SHARE = 0.002
+MIN_DROP = 0.3  # a dead pixel lies this share of the local level below its neighbours' median, at least
+# a flat frame: its median pixel at least this share of full scale (a dead pixel must have light to miss),
+# and at most this share of its pixels clipped (a clipped field hides a weak pixel's loss)
+FLAT_MIN_LEVEL = 0.1
+FLAT_MAX_CLIPPED = 0.05
 _OFFSETS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))  # (dv, du)
 _PAIRS = np.array([[0, 7], [1, 6], [2, 5], [3, 4]])  # opposite neighbours: two diagonals, vertical, horizontal
 
 
 @dataclass(frozen=True, eq=False)
 class DefectMap:
-    """Defect pixels ``uv`` (K, 2) int, px (u right, v down), of a ``width`` x ``height`` sensor."""
+    """Defect pixels ``uv`` (K, 2) int, px (u right, v down), of a ``width`` x ``height`` sensor;
+    ``dead`` (K,) which of them are dead (dark) pixels, the others hot (None: none dead)."""
 
     width: int
     height: int
     uv: NDArray[np.intp]
+    dead: NDArray[np.bool_] | None = None
     # per defect: its flat index, its 8 neighbours' and their weights in the mean of its good ones
     # (1/n for each of its n good neighbours inside the image; 0 for the others)
     _flat: NDArray[np.intp] = field(init=False, repr=False)
@@ -59,6 +72,10 @@ class DefectMap:
         if uv.size and (uv.min() < 0 or uv[:, 0].max() >= self.width or uv[:, 1].max() >= self.height):
             raise ValueError(f"defect pixels must lie in the {self.width} x {self.height} sensor")
         object.__setattr__(self, "uv", uv)
+        dead = np.zeros(len(uv), dtype=bool) if self.dead is None else np.asarray(self.dead, dtype=bool).reshape(-1)
+        if dead.shape != (len(uv),):
+            raise ValueError(f"dead has {dead.size} flags for {len(uv)} defect pixels")
+        object.__setattr__(self, "dead", dead)
         u8 = uv[:, :1] + np.array([du for _, du in _OFFSETS])  # (K, 8): the neighbours, maybe outside
         v8 = uv[:, 1:] + np.array([dv for dv, _ in _OFFSETS])
         nu, nv = np.clip(u8, 0, self.width - 1), np.clip(v8, 0, self.height - 1)
@@ -78,6 +95,29 @@ class DefectMap:
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
+
+    @property
+    def n_dead(self) -> int:
+        return int(np.count_nonzero(np.asarray(self.dead)))
+
+    def merged(self, other: DefectMap) -> DefectMap:
+        """Both maps' defects (of one sensor), each pixel once: dead where either says so."""
+        if (other.width, other.height) != (self.width, self.height):
+            raise ValueError(
+                f"a {other.width} x {other.height} sensor's defects cannot join a {self.width} x {self.height} one's"
+            )
+        flat = np.concatenate([self.flat, other.flat])
+        dead = np.concatenate([np.asarray(self.dead), np.asarray(other.dead)])
+        order = np.lexsort((~dead, flat))  # per pixel its dead entry first, then unique keeps it
+        flat, dead = flat[order], dead[order]
+        first = np.r_[True, flat[1:] != flat[:-1]]
+        flat, dead = flat[first], dead[first]
+        return DefectMap(self.width, self.height, np.stack([flat % self.width, flat // self.width], axis=1), dead)
+
+    def of_kind(self, dead: bool) -> DefectMap:
+        """The map of its dead (``dead``) or of its hot pixels alone."""
+        keep = np.asarray(self.dead) == dead
+        return DefectMap(self.width, self.height, self.uv[keep], np.full(int(keep.sum()), dead))
 
     @property
     def flat(self) -> NDArray[np.intp]:
@@ -134,10 +174,14 @@ class DefectMap:
             raise ValueError(f"the window {x}, {y}, {width} x {height} leaves the {self.width} x {self.height} sensor")
         uv = self.uv - (x, y)
         keep = (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
-        return DefectMap(width, height, uv[keep])
+        return DefectMap(width, height, uv[keep], np.asarray(self.dead)[keep])
 
     def to_dict(self, **extra: Any) -> dict[str, Any]:
-        return {"format": FORMAT, "width": self.width, "height": self.height, "pixels": self.uv.tolist(), **extra}
+        """Every defect in ``pixels`` (what a reader patches), the dead ones also in ``dead_pixels``."""
+        d: dict[str, Any] = {"format": FORMAT, "width": self.width, "height": self.height, "pixels": self.uv.tolist()}
+        if self.n_dead:
+            d["dead_pixels"] = self.uv[np.asarray(self.dead)].tolist()
+        return {**d, **extra}
 
     @staticmethod
     def from_dict(data: Any, source: str = "defects") -> DefectMap:
@@ -146,12 +190,17 @@ class DefectMap:
         try:
             width, height = int(data["width"]), int(data["height"])
             uv = np.array(data["pixels"], dtype=np.intp).reshape(-1, 2)
+            dead_uv = np.array(data.get("dead_pixels", []), dtype=np.intp).reshape(-1, 2)
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{source}: 'width', 'height' and 'pixels' ([[u, v], ...]) are needed ({e})") from None
         if width <= 0 or height <= 0:
             raise ValueError(f"{source}: width and height must be positive, got {width} x {height}")
+        keys = uv[:, 1] * width + uv[:, 0]
+        dead_keys = dead_uv[:, 1] * width + dead_uv[:, 0]
+        if not np.isin(dead_keys, keys).all():
+            raise ValueError(f"{source}: every one of 'dead_pixels' must be one of 'pixels' too")
         try:
-            return DefectMap(width, height, uv)
+            return DefectMap(width, height, uv, np.isin(keys, dead_keys))
         except ValueError as e:
             raise ValueError(f"{source}: {e}") from None
 
@@ -165,6 +214,7 @@ class DefectSearch:
     n_frames: int
     threshold_dn: NDArray[np.float64]
     sometimes: int
+    unjudged: int = 0  # flat frames: pixels whose neighbourhood was lit in too few of them to judge
 
 
 def find_defects(
@@ -180,14 +230,7 @@ def find_defects(
     their type's maximum), which scales ``min_dn`` (8-bit DN)."""
     import cv2  # only the search needs OpenCV (its 3 x 3 median); a map is read and applied without
 
-    if len(frames) < MIN_FRAMES:
-        raise ValueError(f"{len(frames)} frames: at least {MIN_FRAMES} are needed to tell a defect from a target")
-    shape = frames[0].shape
-    if any(f.shape != shape or f.ndim != 2 or f.dtype not in (np.uint8, np.uint16) for f in frames):
-        raise ValueError("the frames must be 2-D uint8 or uint16 images of one size")
-    if not 0.0 < min_fraction <= 1.0:
-        raise ValueError(f"min_fraction must lie in (0, 1], got {min_fraction}")
-    full = float(full_dn if full_dn is not None else np.iinfo(frames[0].dtype).max)
+    shape, full = _check_frames(frames, full_dn, min_fraction, "to tell a defect from a target")
     floor = min_dn * full / 255.0
     count = np.zeros(shape, dtype=np.uint16)
     thresholds = []
@@ -207,3 +250,70 @@ def find_defects(
         np.array(thresholds),
         int(np.count_nonzero((count > 0) & (count < need))),
     )
+
+
+def find_dead_pixels(
+    flats: Sequence[NDArray[Any]],
+    *,
+    full_dn: float | None = None,
+    k_sigma: float = K_SIGMA,
+    min_drop: float = MIN_DROP,
+    min_fraction: float = MIN_FRACTION,
+) -> DefectSearch:
+    """The pixels that lie below their 3 x 3 neighbourhood's median by ``k_sigma`` times the frame's
+    noise and by ``min_drop`` of that median in at least ``min_fraction`` of the flat frames
+    ``flats`` (an evenly lit field: see the module docstring); ValueError for a frame that is not
+    lit or is clipped. Judged only where the neighbourhood is lit (its median at least FLAT_MIN_LEVEL
+    of full scale) in enough frames; the others are counted (``unjudged``). ``full_dn`` as for
+    :func:`find_defects`. The map's pixels are all dead."""
+    import cv2
+
+    shape, full = _check_frames(flats, full_dn, min_fraction, "to tell a dead pixel from noise")
+    count, lit = np.zeros(shape, dtype=np.uint16), np.zeros(shape, dtype=np.uint16)
+    thresholds = []
+    for k, f in enumerate(flats):
+        level = float(np.median(f[::4, ::4]))
+        clipped = float(np.count_nonzero(f[::4, ::4] >= full)) / f[::4, ::4].size
+        if level < FLAT_MIN_LEVEL * full:
+            raise ValueError(
+                f"flat frame {k + 1} is not lit (its median pixel {level:g} DN, under {FLAT_MIN_LEVEL:.0%} of "
+                f"{full:g}): a flat frame shows an evenly lit field, e.g. a white card before the lens under "
+                "the ring light"
+            )
+        if clipped > FLAT_MAX_CLIPPED:
+            raise ValueError(
+                f"flat frame {k + 1} is clipped ({clipped:.0%} of its pixels at {full:g} DN): shorten the exposure "
+                "so that the field lies well below full scale"
+            )
+        median = cv2.medianBlur(f, 3).astype(np.float32)
+        # below the neighbours: the residual's noise from its central part (MAD), as for hot pixels;
+        # judged only where the neighbourhood is lit (a shadow's dim pixels cannot tell a dead one)
+        residual = median - f.astype(np.float32)
+        sigma = 1.4826 * float(np.median(np.abs(residual[::4, ::4])))
+        thresholds.append(k_sigma * sigma)
+        judged = median >= FLAT_MIN_LEVEL * full
+        lit += judged
+        count += judged & (residual > k_sigma * sigma) & (residual > min_drop * median)
+    need = int(np.ceil(min_fraction * len(flats)))
+    v, u = np.nonzero(count >= need)
+    return DefectSearch(
+        DefectMap(shape[1], shape[0], np.stack([u, v], axis=1), np.ones(u.size, dtype=bool)),
+        len(flats),
+        np.array(thresholds),
+        int(np.count_nonzero((count > 0) & (count < need))),
+        int(np.count_nonzero(lit < need)),
+    )
+
+
+def _check_frames(
+    frames: Sequence[NDArray[Any]], full_dn: float | None, min_fraction: float, what: str
+) -> tuple[tuple[int, ...], float]:
+    """The frames' shape and full scale; ValueError for too few frames, mixed or non-grey ones."""
+    if len(frames) < MIN_FRAMES:
+        raise ValueError(f"{len(frames)} frames: at least {MIN_FRAMES} are needed {what}")
+    shape = frames[0].shape
+    if any(f.shape != shape or f.ndim != 2 or f.dtype not in (np.uint8, np.uint16) for f in frames):
+        raise ValueError("the frames must be 2-D uint8 or uint16 images of one size")
+    if not 0.0 < min_fraction <= 1.0:
+        raise ValueError(f"min_fraction must lie in (0, 1], got {min_fraction}")
+    return shape, float(full_dn if full_dn is not None else np.iinfo(frames[0].dtype).max)
