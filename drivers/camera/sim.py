@@ -107,6 +107,8 @@ class SimCamera:
     render : "process" (a render process, the default) or "inline" (in the fetching thread)
     hot_pixels : share of the sensor's pixels that are hot (200 DN of dark current, lit or not; the
         same pixels in every frame, drawn from ``seed``); 0: none
+    dead_pixels : share of the sensor's pixels that are dead (0 DN, lit or not; the same in every
+        frame, drawn from ``seed``); 0: none
     """
 
     def __init__(
@@ -124,10 +126,13 @@ class SimCamera:
         T_master_camera: list[list[float]] | None = None,
         render: str = "process",
         hot_pixels: float = 0.0,
+        dead_pixels: float = 0.0,
     ) -> None:
-        if not 0.0 <= float(hot_pixels) <= 0.01:
-            raise ValueError(f"hot_pixels is a share of the sensor's pixels in [0, 0.01], got {hot_pixels}")
-        self._hot_pixels = float(hot_pixels)  # the sensor's own, drawn from the seed: the same in every frame
+        for name, share in (("hot_pixels", hot_pixels), ("dead_pixels", dead_pixels)):
+            if not 0.0 <= float(share) <= 0.01:
+                raise ValueError(f"{name} is a share of the sensor's pixels in [0, 0.01], got {share}")
+        # the sensor's own, drawn from the seed: the same in every frame
+        self._hot_pixels, self._dead_pixels = float(hot_pixels), float(dead_pixels)
         self._cell = cell if cell is not None else SimCell(CellConfig(**(cell_config or {})))
         self.epoch_ns = time.monotonic_ns() if epoch_ns is None else int(epoch_ns)
         self.latency_ns = int(latency_s * 1e9)
@@ -474,4 +479,6 @@ class SimCamera:
             bit_depth=depth,
             hot_pixels=self._hot_pixels,
             hot_pixel_seed=self._seed,
+            dead_pixels=self._dead_pixels,
+            dead_pixel_seed=self._seed + 1,  # not the hot ones'
         )

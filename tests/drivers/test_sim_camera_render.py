@@ -310,3 +310,21 @@ def test_at_20_hz_under_a_gil_holding_load_the_camera_delivers_its_frames_withou
         f"{host.sentence() if host else 'the host not watched'}"
     )
     assert set(run["renders"]) == {"child"} and run["restarts"] == 0
+
+
+def test_the_sensors_dead_pixels_read_zero_lit_or_not_and_are_not_its_hot_ones(hold_cell):
+    from service.sim.render import hot_pixel_indices
+
+    cam = SimCamera(hold_cell, seed=5, render="inline", hot_pixels=5e-4, dead_pixels=5e-4)
+    cam.open()
+    try:
+        dead, hot = hot_pixel_indices(1030, 1300, 5e-4, 6), hot_pixel_indices(1030, 1300, 5e-4, 5)
+        for strobe in (LIT, None):
+            cam.configure(CameraSettings(exposure_us=2000.0, frame_rate_hz=20.0, strobe=strobe))
+            image = _fetch(cam, 2)[-1].image.reshape(-1)
+            assert dead.size == 670 and not np.any(image[dead]), strobe  # no response whatever the light
+            assert np.median(image[np.setdiff1d(hot, dead)]) > 150, strobe  # the hot ones: 200 DN of dark current
+    finally:
+        cam.close()
+    with pytest.raises(ValueError, match="dead_pixels is a share"):
+        SimCamera(hold_cell, dead_pixels=0.02)
