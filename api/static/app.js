@@ -226,17 +226,24 @@
     for (const [name, c] of cams) {
       let card = cameraCards.get(name);
       if (!card) {
-        // the sensor's hot pixels mapped from dark frames by the service (POST /calibration/camera/defects)
+        // the sensor's hot pixels mapped from dark frames by the service, its dead ones from frames of a
+        // white card before the lens (POST /calibration/camera/defects)
         const mapButton = el("button", { type: "button", class: "ghost defects-map", text: "Map hot pixels",
           title: "8 frames with the ring light off (they give no pose), then the hot pixels found in them are " +
                  "saved and patched in every frame; uses the API token of “Triggered measurement”" });
+        const deadButton = el("button", { type: "button", class: "ghost defects-dead", text: "Map dead pixels",
+          title: "Hold a white card before the lens, lit evenly by the ring light, then press: 8 frames of it, " +
+                 "the dead pixels found in them saved beside the hot ones and patched in every frame; uses the " +
+                 "API token of “Triggered measurement”" });
         card = el("div", { class: "device camera", "data-camera": name },
           el("div", { class: "device-head" },
             el("span", { class: "device-name", text: `Camera ${name}` }), el("span", { class: "pill state" })),
           el("div", { class: "device-facts" }),
           el("p", { class: "device-error" }),
-          el("div", { class: "device-actions" }, mapButton, el("span", { class: "device-note", role: "status" })));
-        mapButton.addEventListener("click", () => mapDefects(name, card));
+          el("div", { class: "device-actions" }, mapButton, deadButton,
+            el("span", { class: "device-note", role: "status" })));
+        mapButton.addEventListener("click", () => mapDefects(name, card, "hot"));
+        deadButton.addEventListener("click", () => mapDefects(name, card, "dead"));
         cameraCards.set(name, card);
         box.append(card);
       }
@@ -272,16 +279,18 @@
     }
   }
 
-  async function mapDefects(name, card) {
-    const button = card.querySelector(".defects-map"), note = card.querySelector(".device-note");
-    button.disabled = true;
+  async function mapDefects(name, card, kind) {
+    const buttons = card.querySelectorAll(".defects-map, .defects-dead"), note = card.querySelector(".device-note");
+    buttons.forEach((b) => { b.disabled = true; });
     note.dataset.state = "busy";
-    note.textContent = "taking dark frames…";
+    note.textContent = kind === "hot" ? "taking dark frames…" : "taking frames of the card…";
     try {
       const r = await window.posecell.call("/calibration/camera/defects", {
-        method: "POST", headers: window.posecell.headers(), body: JSON.stringify({ camera: name }) });
-      const said = [`${r.defects} defect pixels mapped from ${r.frames} dark frames` +
-                    (r.applied ? ", patched from now on" : ", not in use")];
+        method: "POST", headers: window.posecell.headers(), body: JSON.stringify({ camera: name, kind }) });
+      const what = kind === "hot" ? `${r.found} defect pixels mapped from ${r.frames} dark frames`
+                                  : `${r.found} dead pixels mapped from ${r.frames} frames of the card`;
+      const said = [what + (r.kept ? ` (${r.defects} in the map, the ${r.kept} ${kind === "hot" ? "dead" : "hot"} ` +
+                                    "ones kept)" : "") + (r.applied ? ", patched from now on" : ", not in use")];
       if (r.warning) said.push(r.warning);
       if (!r.strobe_restored) said.push("the ring light's strobe could not be switched on again: see the events");
       note.dataset.state = r.warning || !r.strobe_restored ? "warn" : "ok";
@@ -291,7 +300,7 @@
       note.textContent = `${e.reason}: ${e.message}` +
         (e.status === 401 ? " (enter the API token under “Triggered measurement”)" : "");
     } finally {
-      button.disabled = false;
+      buttons.forEach((b) => { b.disabled = false; });
     }
   }
 

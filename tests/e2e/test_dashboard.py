@@ -462,3 +462,19 @@ def test_page_loads_nothing_from_outside_and_raises_no_script_error(page: Page, 
     assert outside == []
     page.js("0")  # drain pending DevTools events
     assert page.exceptions == []
+
+
+def test_a_camera_cards_dead_pixel_button_says_why_frames_without_the_card_are_refused(
+    page: Page, cell: LiveServer
+) -> None:
+    """The simulated cell has no white card before its lens: its frames are not lit flat fields, and the
+    card says the service's refusal; nothing changes."""
+    cam = '[data-camera="cam0"]'
+    note = f"document.querySelector('{cam} .device-note')"
+    page.wait(f"document.querySelector('{cam}')?.dataset.state === 'ok'", "camera cam0 ok")
+    page.type("#token", TOKEN)
+    page.click(f"{cam} .defects-dead")
+    said = page.wait(f"{note}.dataset.state === 'failed' && {note}.textContent", "the refused frames", 30)
+    assert said.startswith("bad_image: camera cam0: flat frame 1 is not lit") and "white card" in said, said
+    assert cell.worker.settings.cameras[0].defects is None
+    assert not page.js(f"document.querySelector('{cam} .defects-dead').disabled")
