@@ -21,6 +21,7 @@ configuration as ``PUT /config`` saves it).
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Any, Literal
 
 from fastapi import APIRouter, Request
@@ -99,6 +100,7 @@ def take_defects(request: Request, worker: WorkerDep, req: DefectsRequest | None
             found = search(images, full_dn=full_dn)
         except ValueError as e:
             raise ApiError(Reason.bad_image, f"camera {cfg.name}: {e}") from None
+        found = _of_the_sensor(worker, cfg.name, found)
         m, kept, note = _with_the_other_kind(cfg, found, req.kind == "dead")
         path = worker.settings.resolved_state_dir() / f"defects-{cfg.name}.json"
         formats.write_defects(path, m, frames=found.n_frames, threshold_dn=float(found.threshold_dn.max()))
@@ -149,6 +151,15 @@ def take_defects(request: Request, worker: WorkerDep, req: DefectsRequest | None
             "warning": "; ".join(warnings) or None,
             "strobe_restored": not restore_error,
         }
+
+
+def _of_the_sensor(worker: Worker, name: str, found: DefectSearch) -> DefectSearch:
+    """The search's map as the whole sensor's when the camera delivers a window of it (its ``roi``): the
+    measurement crops a camera's map to its window, as it does its calibration."""
+    roi, camera = worker.processors[name].roi(), worker.calibration.camera
+    if roi is None or camera is None:
+        return found
+    return replace(found, defects=found.defects.in_sensor(roi[0], roi[1], camera.width, camera.height))
 
 
 def _with_the_other_kind(cfg: CameraConfig, found: DefectSearch, dead: bool) -> tuple[DefectMap, int, str]:

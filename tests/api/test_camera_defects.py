@@ -162,3 +162,27 @@ def test_the_service_maps_dead_pixels_from_flat_frames_and_keeps_the_hot_ones(tm
             30.0,
             "the new map in use",
         )
+
+
+def test_a_map_taken_of_a_cameras_window_is_kept_as_the_whole_sensors(tmp_path):
+    """A camera delivering a window of its sensor (``roi``): the map the service takes of its frames is
+    written as the whole sensor's, as the measurement crops it, and the poses go on with it."""
+    roi = [200, 150, 800, 600]
+    cameras = [{"frame_rate_hz": 15.0, "roi": roi, "options": {"hot_pixels": 5e-4, "seed": 3}}]
+    for server in run_server(live_settings(tmp_path / "state", cameras=cameras)):
+        server.wait_for(lambda h: h["processing"]["ok"] >= 3, 120.0, "poses of the window")
+        with server.client() as c:
+            r = c.post("/calibration/camera/defects", json={"frames": 5})
+            assert r.status_code == 200, r.text
+            out = r.json()
+        saved = formats.read_defects(out["file"])
+        assert (saved.width, saved.height) == (1300, 1030) and len(saved) == out["found"] > 100, out
+        u, v = saved.uv.T
+        assert u.min() >= 200 and u.max() < 1000 and v.min() >= 150 and v.max() < 750
+        health = server.wait_for(
+            lambda h: (h["processing"]["measurement"]["cam0"]["defects"] or {}).get("pixels") == len(saved),
+            30.0,
+            "the map in use",
+        )
+        ok = health["processing"]["ok"]
+        server.wait_for(lambda h: h["processing"]["ok"] >= ok + 3, 60.0, "poses of the window with the map")

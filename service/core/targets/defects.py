@@ -176,6 +176,13 @@ class DefectMap:
         keep = (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
         return DefectMap(width, height, uv[keep], np.asarray(self.dead)[keep])
 
+    def in_sensor(self, x: int, y: int, width: int, height: int) -> DefectMap:
+        """This map of a window of the sensor (a camera's ``roi`` at ``x``, ``y``) as the whole ``width`` x
+        ``height`` sensor's: what :meth:`cropped` takes back to the window."""
+        if x < 0 or y < 0 or x + self.width > width or y + self.height > height:
+            raise ValueError(f"the window {x}, {y}, {self.width} x {self.height} leaves the {width} x {height} sensor")
+        return DefectMap(width, height, self.uv + (x, y), self.dead)
+
     def to_dict(self, **extra: Any) -> dict[str, Any]:
         """Every defect in ``pixels`` (what a reader patches), the dead ones also in ``dead_pixels``."""
         d: dict[str, Any] = {"format": FORMAT, "width": self.width, "height": self.height, "pixels": self.uv.tolist()}
