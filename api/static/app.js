@@ -265,7 +265,9 @@
       if (isNum(c.blur_px) && c.blur_px > 0) facts.push(`blur ${fix(c.blur_px, 2)} px${c.focus ? " (out of focus)" : ""}`);
       // the sensor's hot pixels patched in each frame (POST /calibration/camera/defects, [[cameras]] defects)
       const defects = (measurement[name] || {}).defects;
-      if (defects && isNum(defects.pixels)) facts.push(`${defects.pixels} defect pixels patched`);
+      if (defects && isNum(defects.pixels)) {
+        facts.push(`${defects.pixels} defect pixels patched` + (defects.dead > 0 ? ` (${defects.dead} dead)` : ""));
+      }
       const off = offsets[name];
       if (off && isNum(off.offset_ms)) facts.push(`clock offset ${fix(off.offset_ms, 2)} ± ${fix(off.sigma_ms, 2)} ms`);
       card.querySelector(".device-facts").textContent = facts.join(" · ");

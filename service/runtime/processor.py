@@ -165,7 +165,7 @@ class CameraProcessor:
             # the sensor's defect pixels patched in each frame (None: no map configured)
             "defects": None
             if self._defects is None
-            else {"file": str(self._defects_path), "pixels": len(self._defects)},
+            else {"file": str(self._defects_path), "pixels": len(self._defects), "dead": self._defects.n_dead},
             "bit_depth": self._bit_depth,
             "centre": centre,
             "camera_calibrated_with": calibrated,

@@ -26,7 +26,7 @@ def test_the_service_patches_a_cameras_defects_and_says_so(tmp_path):
     for server in run_server(live_settings(tmp_path / "state", cameras=cameras)):
         health = server.wait_for(lambda h: h["processing"]["ok"] >= 5, 120.0, "poses with the defect map")
         report = health["processing"]["measurement"]["cam0"]
-        assert report["defects"] == {"file": str(tmp_path / "defects.json"), "pixels": 300}, report
+        assert report["defects"] == {"file": str(tmp_path / "defects.json"), "pixels": 300, "dead": 0}, report
         with connect(f"{server.ws_url}/ws/poses?targets=false", open_timeout=10) as ws:
             for _ in range(3):
                 msg = json.loads(ws.recv(timeout=10))
@@ -157,11 +157,12 @@ def test_the_service_maps_dead_pixels_from_flat_frames_and_keeps_the_hot_ones(tm
         assert set(saved.of_kind(dead=False).flat.tolist()) == set(hot.flat.tolist()) - set(dead.tolist())
         assert out["kind"] == "dead" and out["found"] == dead.size and out["kept"] == len(hot), out
         assert (out["dead"], out["hot"]) == (dead.size, len(saved) - dead.size) and out["applied"], out
-        server.wait_for(
+        health = server.wait_for(
             lambda h: (h["processing"]["measurement"]["cam0"]["defects"] or {}).get("file") == out["file"],
             30.0,
             "the new map in use",
         )
+        assert health["processing"]["measurement"]["cam0"]["defects"]["dead"] == dead.size
 
 
 def test_a_map_taken_of_a_cameras_window_is_kept_as_the_whole_sensors(tmp_path):

@@ -407,13 +407,14 @@ def test_a_camera_card_counts_the_defect_pixels_its_frames_are_patched_for(
 
     cam = '[data-camera="cam0"]'
     page.wait(f"document.querySelector('{cam}')?.dataset.state === 'ok'", "camera cam0 ok")
-    formats.write_defects(tmp_path / "defects.json", DefectMap(1300, 1030, [[10, 20], [500, 400], [900, 77]]))
+    uv, dead = [[10, 20], [500, 400], [900, 77]], [False, True, False]  # two hot, one dead
+    formats.write_defects(tmp_path / "defects.json", DefectMap(1300, 1030, uv, dead))
     worker = cell.worker
     before = worker.settings.cameras[0]
     assert worker.reconfigure_camera(before.model_copy(update={"defects": tmp_path / "defects.json"})) == ""
     try:
         page.wait(
-            f"/3 defect pixels patched/.test(document.querySelector('{cam} .device-facts').textContent)",
+            f"/3 defect pixels patched \\(1 dead\\)/.test(document.querySelector('{cam} .device-facts').textContent)",
             "the defect map on the card",
             15,
         )
