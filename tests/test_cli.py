@@ -455,9 +455,18 @@ def test_calibrate_defects_maps_dead_pixels_from_flat_frames_beside_the_hot_ones
     moved_p = sorted(float(np.hypot(*np.subtract(uv_p[k], uv_c[k]))) for k in uv_c)
     # seen: without the map up to 0.14 px; patched up to 0.016 (a patched pixel on a disk's steep edge)
     assert uv_p.keys() == uv_c.keys() and moved_p[-1] < 0.03 and moved_s[-1] > 0.05, (moved_p[-3:], moved_s[-3:])
-    # flat frames alone; nothing given; dark frames given as flat ones: a sentence each, exit 2
+    # flat frames alone; again over the map: its hot pixels kept (one kind mapped never loses the other)
     r = run("calibrate", "defects", "--flat", str(tmp_path / "flat"), "-o", str(tmp_path / "dead.json"))
     assert r.returncode == 0 and json.loads(r.stdout)["dead"] == dead.size, r.stderr
+    r = run("calibrate", "defects", "--flat", str(tmp_path / "flat"), "-o", str(out_path))
+    again = json.loads(r.stdout)
+    assert (again["hot"], again["dead"], again["kept"]) == (hot.size, dead.size, hot.size), again
+    assert json.loads(out_path.read_text())["pixels"] == saved["pixels"]
+    (tmp_path / "notes.json").write_text('{"mine": true}')  # not a defect map: not overwritten
+    r = run("calibrate", "defects", "--flat", str(tmp_path / "flat"), "-o", str(tmp_path / "notes.json"))
+    assert r.returncode == 2 and "not overwritten" in r.stderr, r.stderr
+    assert json.loads((tmp_path / "notes.json").read_text()) == {"mine": True}
+    # nothing given; dark frames given as flat ones: a sentence each, exit 2
     r = run("calibrate", "defects", "-o", str(tmp_path / "x.json"))
     assert r.returncode == 2 and "give dark frames" in r.stderr, r.stderr
     r = run("calibrate", "defects", "--flat", str(tmp_path / "dark"), "-o", str(tmp_path / "x.json"))

@@ -139,6 +139,17 @@ def run_defects(args: argparse.Namespace) -> int:
         raise CliError(str(e)) from None
     found = [search.defects for search in (hot, dead) if search is not None]
     m = found[0] if len(found) == 1 else found[0].merged(found[1])  # one sensor: hot and dead pixels alike
+    # an existing map at the output keeps its pixels of the kind not searched now (flat frames alone
+    # keep its hot pixels, dark frames alone its dead ones): mapping one kind never loses the other
+    kept = 0
+    if args.output.exists() and (hot is None or dead is None):
+        try:
+            before = formats.read_defects(args.output)
+        except (OSError, ValueError) as e:
+            raise CliError(f"{args.output} is there but not a defect map ({e}): not overwritten") from None
+        if (before.width, before.height) == (m.width, m.height):
+            other = before.of_kind(dead=hot is not None)
+            m, kept = other.merged(m), len(other)
     record: dict[str, object] = {}
     if hot is not None:
         record.update(frames=hot.n_frames, threshold_dn=float(hot.threshold_dn.max()))
@@ -146,7 +157,14 @@ def run_defects(args: argparse.Namespace) -> int:
         record.update(flat_frames=dead.n_frames, flat_threshold_dn=float(dead.threshold_dn.max()))
     formats.write_defects(args.output, m, **record)
     share = (len(m) - m.n_dead) / (m.width * m.height)
-    out: dict[str, object] = {"ok": True, "defects": len(m), "hot": len(m) - m.n_dead, "dead": m.n_dead, "share": share}
+    out: dict[str, object] = {
+        "ok": True,
+        "defects": len(m),
+        "hot": len(m) - m.n_dead,
+        "dead": m.n_dead,
+        "kept": kept,
+        "share": share,
+    }
     if hot is not None:
         out.update(
             frames=hot.n_frames,
